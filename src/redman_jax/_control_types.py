@@ -1,0 +1,106 @@
+"""The one controller interface shared by the simulator, the tuner and users' own code.
+
+A controller is an :class:`AbstractController` (static options only: which projector, which
+policies, orientation scaling mode...). Its numbers live in a separate gains pytree (an
+``eqx.Module`` of arrays), so a sweep or a gradient over gains never recompiles:
+
+``out = controller(gains, arm, state, ref, env)`` with
+
+* ``state``: :class:`ControlState` (``t``, ``q``, ``qd`` and the controller's integrated state ``z``,
+  a pytree it defines through ``init_state``, e.g. the velocity OSC's ``q_r``);
+* ``ref``: :class:`RefSample`, the zero-order-held reference sample (operational and joint space);
+* ``env``: :class:`Environment`, obstacles, goal and the virtual-obstacle buffer;
+* ``out``: :class:`ControlOutput`: joint torques ``tau``, ``dz = dz/dt`` (same structure as ``z``) and
+  a dict of diagnostics (e.g. ``"tau_null"``, the null-space part of the command).
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, PyTree
+
+from ._obstacles import ObstacleSet
+
+__all__ = ["ControlState", "RefSample", "Environment", "ControlOutput", "AbstractController"]
+
+
+class ControlState(eqx.Module):
+    t: Float[Array, ""]
+    q: Float[Array, " n"]
+    qd: Float[Array, " n"]
+    z: PyTree
+
+
+class RefSample(eqx.Module):
+    """One held reference sample. Operational space: ``p, v, a`` (3,), ``quat`` (4,), ``omega,
+    omega_dot`` (3,), ``rot`` in {0, 1}. Joint space (from the IK; zeros where unused):
+    ``q, qd, qdd`` (n,)."""
+
+    p: Float[Array, "3"]
+    v: Float[Array, "3"]
+    a: Float[Array, "3"]
+    quat: Float[Array, "4"]
+    omega: Float[Array, "3"]
+    omega_dot: Float[Array, "3"]
+    rot: Float[Array, ""]
+    q: Float[Array, " n"]
+    qd: Float[Array, " n"]
+    qdd: Float[Array, " n"]
+
+
+class Environment(eqx.Module):
+    """What a controller may sense of the world: ``obstacles``, the goal pose and the buffer of
+    virtual obstacles of the local-minima estimator (``virtual_p`` ``(B, 3)``, ``virtual_mask``
+    ``(B,)``; empty for controllers that do not use it)."""
+
+    obstacles: ObstacleSet
+    goal_p: Float[Array, "3"]
+    goal_quat: Float[Array, "4"]
+    virtual_p: Float[Array, "B 3"]
+    virtual_mask: Bool[Array, " B"]
+
+
+def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int = 20) -> Environment:
+    dtype = jnp.asarray(goal_p).dtype
+    return Environment(
+        obstacles=obstacles,
+        goal_p=jnp.asarray(goal_p),
+        goal_quat=jnp.asarray(goal_quat),
+        virtual_p=jnp.zeros((buffer_size, 3), dtype),
+        virtual_mask=jnp.zeros((buffer_size,), bool),
+    )
+
+
+class ControlOutput(eqx.Module):
+    tau: Float[Array, " n"]
+    dz: PyTree
+    diag: dict
+
+
+class AbstractController(eqx.Module):
+    """Base of every controller. Concrete controllers are final and hold static options only."""
+
+    @abc.abstractmethod
+    def default_gains(self):
+        """The thesis gains (a pytree of arrays)."""
+
+    @abc.abstractmethod
+    def init_state(self, arm, q0, qd0) -> PyTree:
+        """Initial integrated state ``z`` (``()`` if none)."""
+
+    @abc.abstractmethod
+    def __call__(self, gains, arm, state: ControlState, ref: RefSample, env: Environment) -> ControlOutput:
+        """Joint torques for this state; see the module docstring."""
+
+    @property
+    def needs_joint_reference(self) -> bool:
+        """True for joint-space controllers, which need the IK's ``q, qd, qdd``."""
+        return False
+
+    @property
+    def uses_guidance(self) -> bool:
+        """True for the gradient-guided controller (the simulator runs the estimator for it)."""
+        return False

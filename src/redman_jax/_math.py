@@ -1,0 +1,150 @@
+"""Small Lie-group and quaternion helpers (SE(3), so(3), unit quaternions ``(w, x, y, z)``).
+
+Every function is pure, works on a single element and vmaps; none of them has a NaN gradient at
+the identity (the double-``where`` trick guards the square roots).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+__all__ = [
+    "skew",
+    "exp_revolute",
+    "exp_prismatic",
+    "adjoint",
+    "ad",
+    "rot_to_quat",
+    "quat_to_rot",
+    "quat_mul",
+    "quat_conj",
+    "quat_error",
+    "clip_norm",
+    "safe_norm",
+]
+
+
+def skew(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """``[w]_x`` such that ``skew(w) @ v = w x v``."""
+    z = jnp.zeros_like(w[0])
+    return jnp.array([[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]])
+
+
+def exp_revolute(screw: Float[Array, "6"], theta) -> Float[Array, "4 4"]:
+    """Closed-form ``exp([S] theta)`` of a unit revolute screw ``(omega, v)``, ``|omega| = 1``."""
+    w, v = screw[:3], screw[3:]
+    W = skew(w)
+    W2 = W @ W
+    s, c = jnp.sin(theta), jnp.cos(theta)
+    eye = jnp.eye(3, dtype=W.dtype)
+    R = eye + s * W + (1 - c) * W2
+    p = (theta * eye + (1 - c) * W + (theta - s) * W2) @ v
+    return _homogeneous(R, p)
+
+
+def exp_prismatic(screw: Float[Array, "6"], theta) -> Float[Array, "4 4"]:
+    """``exp([S] theta)`` of a unit prismatic screw ``(0, v)``: a translation by ``v theta``."""
+    return _homogeneous(jnp.eye(3, dtype=screw.dtype), screw[3:] * theta)
+
+
+def _homogeneous(R, p):
+    top = jnp.concatenate([R, p[:, None]], axis=1)
+    bottom = jnp.array([[0.0, 0.0, 0.0, 1.0]], dtype=R.dtype)
+    return jnp.concatenate([top, bottom], axis=0)
+
+
+def adjoint(T: Float[Array, "4 4"]) -> Float[Array, "6 6"]:
+    """``Ad_T = [[R, 0], [[p]_x R, R]]`` for twists ordered ``(omega, v)``."""
+    R, p = T[:3, :3], T[:3, 3]
+    z = jnp.zeros_like(R)
+    return jnp.block([[R, z], [skew(p) @ R, R]])
+
+
+def ad(V: Float[Array, "6"]) -> Float[Array, "6 6"]:
+    """Lie bracket matrix ``ad_V = [[[w], 0], [[v], [w]]]`` for ``V = (w, v)``."""
+    W, Vv = skew(V[:3]), skew(V[3:])
+    z = jnp.zeros_like(W)
+    return jnp.block([[W, z], [Vv, W]])
+
+
+def safe_norm(x, axis=-1, keepdims=False, eps=0.0):
+    """Euclidean norm whose gradient is 0 (not NaN) at ``x = 0`` (double-``where`` trick)."""
+    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0) + eps
+
+
+def rot_to_quat(R: Float[Array, "3 3"]) -> Float[Array, "4"]:
+    """Rotation matrix to unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's method).
+
+    The branch is chosen by the largest of ``(trace, R_xx, R_yy, R_zz)``; every branch's square
+    root is guarded so that the untaken ones give neither NaN values nor NaN gradients.
+    """
+    t = jnp.trace(R)
+    d = jnp.diagonal(R)
+    cands = jnp.stack([t, d[0], d[1], d[2]])
+    k = jnp.argmax(cands)
+
+    def root(x):
+        x = jnp.maximum(x, 1e-12)
+        return jnp.sqrt(x)
+
+    r0 = root(1 + t)
+    q0 = jnp.stack([0.5 * r0, (R[2, 1] - R[1, 2]) / (2 * r0), (R[0, 2] - R[2, 0]) / (2 * r0),
+                    (R[1, 0] - R[0, 1]) / (2 * r0)])
+    r1 = root(1 + d[0] - d[1] - d[2])
+    q1 = jnp.stack([(R[2, 1] - R[1, 2]) / (2 * r1), 0.5 * r1, (R[0, 1] + R[1, 0]) / (2 * r1),
+                    (R[0, 2] + R[2, 0]) / (2 * r1)])
+    r2 = root(1 - d[0] + d[1] - d[2])
+    q2 = jnp.stack([(R[0, 2] - R[2, 0]) / (2 * r2), (R[0, 1] + R[1, 0]) / (2 * r2), 0.5 * r2,
+                    (R[1, 2] + R[2, 1]) / (2 * r2)])
+    r3 = root(1 - d[0] - d[1] + d[2])
+    q3 = jnp.stack([(R[1, 0] - R[0, 1]) / (2 * r3), (R[0, 2] + R[2, 0]) / (2 * r3),
+                    (R[1, 2] + R[2, 1]) / (2 * r3), 0.5 * r3])
+    q = jnp.stack([q0, q1, q2, q3])[k]
+    q = q / jnp.linalg.norm(q)
+    return jnp.where(q[0] < 0, -q, q)
+
+
+def quat_to_rot(q: Float[Array, "4"]) -> Float[Array, "3 3"]:
+    """Unit quaternion ``(w, x, y, z)`` to rotation matrix."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_mul(a: Float[Array, "4"], b: Float[Array, "4"]) -> Float[Array, "4"]:
+    """Hamilton product ``a (x) b`` of scalar-first quaternions."""
+    w1, v1 = a[0], a[1:]
+    w2, v2 = b[0], b[1:]
+    return jnp.concatenate([(w1 * w2 - v1 @ v2)[None], w1 * v2 + w2 * v1 + jnp.cross(v1, v2)])
+
+
+def quat_conj(q: Float[Array, "4"]) -> Float[Array, "4"]:
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_error(q_d: Float[Array, "4"], q: Float[Array, "4"]) -> Float[Array, "3"]:
+    """Orientation error ``e_o = vec(Q_d (x) Q^-1) = eta eps_d - eta_d eps - eps_d x eps`` (SPEC E1).
+
+    ``q`` is first flipped into the hemisphere of ``q_d`` (``q_d . q >= 0``), so the error is
+    invariant to the sign of either quaternion. Used with positive gains it drives ``q`` to ``q_d``.
+    ``|e_o| = sin(phi / 2)`` for a rotation error of angle ``phi``.
+    """
+    q = jnp.where(q_d @ q < 0, -q, q)
+    eta, eps = q[0], q[1:]
+    eta_d, eps_d = q_d[0], q_d[1:]
+    return eta * eps_d - eta_d * eps - jnp.cross(eps_d, eps)
+
+
+def clip_norm(e: Float[Array, " k"], limit) -> Float[Array, " k"]:
+    """Scale ``e`` so that ``|e| <= limit`` (thesis eq. 3.15); NaN-free gradient at ``e = 0``."""
+    n = safe_norm(e)
+    scale = jnp.where(n > limit, limit / jnp.where(n > limit, n, 1.0), 1.0)
+    return e * scale

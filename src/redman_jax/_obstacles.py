@@ -1,0 +1,191 @@
+"""Obstacles: spheres, boxes and cylinders with poses, as one padded pytree (SPEC section 3).
+
+Signed distances (negative inside, zero on the surface; SPEC section 3), with the point moved into
+the obstacle frame ``x_l = R^T (x - p)``:
+
+* sphere: ``|x_l| - r``;
+* cylinder (radius ``r``, half-height ``h``, local z axis): ``d = (|x_l[:2]| - r, |x_l[2]| - h)``,
+  ``sdf = |max(d, 0)| + min(max(d), 0)``;
+* box (half extents ``b``): ``u = |x_l| - b``, ``sdf = |max(u, 0)| + min(max(u), 0)``.
+
+Each shape family has its own fixed capacity and a mask, so scenes with different numbers of
+obstacles stack and vmap together (:func:`stack_obstacles`, :func:`pad_obstacles`). Gradients of the
+sdf are rotated back with ``R`` only (E10) and are NaN-free everywhere (double ``where``).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._math import safe_norm
+
+__all__ = [
+    "Shapes",
+    "ObstacleSet",
+    "make_obstacles",
+    "empty_obstacles",
+    "pad_obstacles",
+    "stack_obstacles",
+    "sphere_sdf",
+    "box_sdf",
+    "cylinder_sdf",
+    "obstacle_distances",
+    "min_distance",
+    "BIG_DISTANCE",
+]
+
+BIG_DISTANCE = 1e3  # distance reported for masked (absent) obstacles
+
+
+class Shapes(eqx.Module):
+    """A padded family of one shape: rotations ``R`` ``(K, 3, 3)``, positions ``p`` ``(K, 3)``,
+    dimensions ``dims`` ``(K, 3)`` (sphere ``(r, 0, 0)``, box half extents ``(bx, by, bz)``,
+    cylinder ``(r, h, 0)`` with ``h`` the half-height) and ``mask`` ``(K,)``."""
+
+    R: Float[Array, "K 3 3"]
+    p: Float[Array, "K 3"]
+    dims: Float[Array, "K 3"]
+    mask: Bool[Array, " K"]
+
+    @property
+    def capacity(self) -> int:
+        return self.p.shape[-2]
+
+
+class ObstacleSet(eqx.Module):
+    """All obstacles of a scene: ``spheres``, ``boxes`` and ``cylinders`` (each a :class:`Shapes`)."""
+
+    spheres: Shapes
+    boxes: Shapes
+    cylinders: Shapes
+
+    @property
+    def capacities(self) -> tuple[int, int, int]:
+        return (self.spheres.capacity, self.boxes.capacity, self.cylinders.capacity)
+
+    def count(self):
+        """Number of active obstacles."""
+        return self.spheres.mask.sum(-1) + self.boxes.mask.sum(-1) + self.cylinders.mask.sum(-1)
+
+
+def _family(items, capacity, kind):
+    """Build a padded :class:`Shapes` from a list of ``(R, p, dims)`` (NumPy, host side)."""
+    if capacity is None:
+        capacity = len(items)
+    if len(items) > capacity:
+        raise ValueError(f"{kind}: {len(items)} obstacles exceed the capacity {capacity}")
+    R = np.tile(np.eye(3), (capacity, 1, 1))
+    p = np.zeros((capacity, 3))
+    dims = np.zeros((capacity, 3))
+    dims[:, :] = 1e-3  # harmless placeholder sizes for padded slots
+    mask = np.zeros(capacity, dtype=bool)
+    for k, (Rk, pk, dk) in enumerate(items):
+        Rk = np.asarray(Rk, dtype=float)
+        pk = np.asarray(pk, dtype=float)
+        dk = np.asarray(dk, dtype=float)
+        if Rk.shape != (3, 3) or not np.allclose(Rk.T @ Rk, np.eye(3), atol=1e-6) or np.linalg.det(Rk) < 0:
+            raise ValueError(f"{kind}[{k}].R: not a proper 3x3 rotation")
+        if pk.shape != (3,) or not np.all(np.isfinite(pk)):
+            raise ValueError(f"{kind}[{k}].p: expected a finite 3-vector")
+        dk3 = np.zeros(3)
+        dk3[: dk.size] = dk.ravel()
+        need = {"spheres": 1, "boxes": 3, "cylinders": 2}[kind]
+        if dk.size < need or np.any(dk3[:need] <= 0) or not np.all(np.isfinite(dk3)):
+            raise ValueError(f"{kind}[{k}].dims: need {need} positive finite sizes, got {dk}")
+        R[k], p[k], dims[k], mask[k] = Rk, pk, dk3, True
+    return Shapes(R=jnp.asarray(R), p=jnp.asarray(p), dims=jnp.asarray(dims), mask=jnp.asarray(mask))
+
+
+def make_obstacles(spheres=(), boxes=(), cylinders=(), capacities=(None, None, None)) -> ObstacleSet:
+    """Build an :class:`ObstacleSet` on the host from lists of ``(R, p, dims)`` tuples.
+
+    ``spheres``: dims ``(r,)``; ``boxes``: half extents ``(bx, by, bz)``; ``cylinders``:
+    ``(r, half_height)`` about the local z axis. ``capacities`` pads each family (None: exact).
+    Raises ``ValueError`` naming the offending entry for a bad rotation, position or size.
+    """
+    cs, cb, cc = capacities
+    return ObstacleSet(
+        spheres=_family(list(spheres), cs, "spheres"),
+        boxes=_family(list(boxes), cb, "boxes"),
+        cylinders=_family(list(cylinders), cc, "cylinders"),
+    )
+
+
+def empty_obstacles(capacities=(1, 1, 1)) -> ObstacleSet:
+    """An obstacle set with every slot masked out."""
+    return make_obstacles(capacities=capacities)
+
+
+def _pad_family(s: Shapes, capacity: int) -> Shapes:
+    k = s.capacity
+    if capacity < k:
+        raise ValueError(f"pad_obstacles: capacity {capacity} < current {k}")
+    extra = capacity - k
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=s.R.dtype), (extra, 3, 3))
+    return Shapes(
+        R=jnp.concatenate([s.R, eye]),
+        p=jnp.concatenate([s.p, jnp.zeros((extra, 3), s.p.dtype)]),
+        dims=jnp.concatenate([s.dims, jnp.full((extra, 3), 1e-3, s.dims.dtype)]),
+        mask=jnp.concatenate([s.mask, jnp.zeros((extra,), bool)]),
+    )
+
+
+def pad_obstacles(obs: ObstacleSet, capacities: tuple[int, int, int]) -> ObstacleSet:
+    """Pad every family of ``obs`` to the given capacities (spheres, boxes, cylinders)."""
+    return ObstacleSet(
+        spheres=_pad_family(obs.spheres, capacities[0]),
+        boxes=_pad_family(obs.boxes, capacities[1]),
+        cylinders=_pad_family(obs.cylinders, capacities[2]),
+    )
+
+
+def stack_obstacles(sets) -> ObstacleSet:
+    """Pad a list of obstacle sets to common capacities and stack them along a new leading axis."""
+    sets = list(sets)
+    caps = tuple(max(s.capacities[i] for s in sets) for i in range(3))
+    padded = [pad_obstacles(s, caps) for s in sets]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
+
+
+def _vmax0_norm(u):
+    """``|max(u, 0)|`` with a NaN-free gradient."""
+    return safe_norm(jnp.maximum(u, 0.0))
+
+
+def sphere_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
+    return safe_norm(x_local) - dims[0]
+
+
+def box_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
+    u = jnp.abs(x_local) - dims
+    return _vmax0_norm(u) + jnp.minimum(jnp.max(u), 0.0)
+
+
+def cylinder_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
+    d = jnp.stack([safe_norm(x_local[:2]) - dims[0], jnp.abs(x_local[2]) - dims[1]])
+    return _vmax0_norm(d) + jnp.minimum(jnp.max(d), 0.0)
+
+
+def _family_sdf(s: Shapes, x: Float[Array, "3"], fn) -> Float[Array, " K"]:
+    xl = jnp.einsum("kji,kj->ki", s.R, x[None, :] - s.p)  # R^T (x - p)
+    d = jax.vmap(fn)(xl, s.dims)
+    return jnp.where(s.mask, d, BIG_DISTANCE)
+
+
+def obstacle_distances(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, " K"]:
+    """Signed distances from point ``x`` to every slot, ``(Ks + Kb + Kc,)``; masked slots give
+    :data:`BIG_DISTANCE`. Order: spheres, boxes, cylinders."""
+    return jnp.concatenate([
+        _family_sdf(obs.spheres, x, sphere_sdf),
+        _family_sdf(obs.boxes, x, box_sdf),
+        _family_sdf(obs.cylinders, x, cylinder_sdf),
+    ])
+
+
+def min_distance(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, ""]:
+    """Smallest signed distance from ``x`` to any active obstacle (BIG_DISTANCE if none)."""
+    return jnp.min(obstacle_distances(obs, x))
