@@ -1,0 +1,36 @@
+"""Test configuration: float64 (as the package enables), and a small helper set.
+
+Each test module uses its own small problem sizes; heavy runs live in benchmarks/.
+"""
+
+import os
+
+os.environ.setdefault("REDMAN_JAX_X64", "1")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import redman_jax  # noqa: E402,F401  (enables x64)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(params=[7, 8, 9])
+def thesis_arm_any(request):
+    return redman_jax.thesis_arm(request.param)
+
+
+def fd_jacobian(f, x, eps=1e-6):
+    """Central finite-difference Jacobian of f: R^n -> R^m (NumPy, float64)."""
+    x = np.asarray(x, dtype=float)
+    f0 = np.asarray(f(x))
+    out = np.zeros(f0.shape + x.shape)
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e.flat[i] = eps
+        out[..., i] = (np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * eps)
+    return out
