@@ -1,0 +1,643 @@
+"""Closed-loop simulation of an arm, a controller and a scenario with diffrax (thesis 3.3.1, 3.5;
+SPEC sections 5, 9, 10).
+
+**The hybrid system.** The controller is part of the vector field (continuous in time, as in the
+thesis); the reference is a zero-order hold of the samples at ``t_s``: sample ``k`` is held on the
+left-closed interval ``[k t_s, (k+1) t_s)`` (E29). The ODE state is
+
+``y = (q, qd, z, f)``,  ``q_dot = qd``,  ``qd_dot = M^-1(tau - tau_lim - c - g)`` (3.5/3.7, E8),
+``z_dot = dz`` (the controller's integrated state, e.g. the velocity OSC's ``q_r``) and three flag
+states (thesis 3.5): ``f_obs_dot = 1`` while the smallest point-of-interest signed distance is below
+the link width (0.10 m), ``f_jl_dot = 1`` while a limited joint is outside its limits, and
+``f_bad_dot = 1`` while the vector field is non-finite or the state exceeds the divergence bounds.
+The flags are excluded from the error norm of the step-size controller (SPEC section 10).
+
+**Integration (measured, see ``benchmarks/bench_sim.py``).** Trajectory runs are *one*
+``diffeqsolve`` over the whole horizon ``[0, N t_s]`` (``mode="horizon"``): the step-size
+controller is a PID controller wrapped in a ``ClipStepSizeController`` with ``jump_ts`` at every
+sample boundary, so the solver steps to just before each boundary and restarts just after it (the
+FSAL stage is re-evaluated, no step straddles a reference jump), and the held sample is found from
+``t`` by comparing against the *same* boundary array (``searchsorted(..., side="right")``: a time
+``prevbefore(b_k)`` still holds sample ``k-1``, ``nextafter(b_k)`` holds sample ``k``). The step
+size proposed by the PID controller carries over the boundaries, so no step-size search restarts at
+every sample. ``mode="per_sample"`` is a ``lax.scan`` over samples with one warm-started
+``diffeqsolve`` per sample (``dt0`` = the previous sample's mean accepted step): the gradient-guided
+runs need it, because the local-minima estimator changes the virtual-obstacle buffer at every sample
+start (a discrete update the ODE state cannot express), and it serves as a cross-check.
+Under ``vmap`` a single horizon solve costs ``max_members(total steps)`` loop iterations, while a
+scan over per-sample solves costs ``sum_k max_members(steps in sample k)``.
+
+Default solver: ``Tsit5`` with ``rtol = 1e-5``, ``atol = 1e-7`` (SPEC U9: adaptive, non-stiff, a
+little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6).
+
+**Adjoint.** ``RecursiveCheckpointAdjoint`` (discretise-then-optimise): gradients are exact for the
+computed discrete trajectory, memory is bounded by binomial checkpointing over ``max_steps``,
+and it works with the jump times, the flags and the divergence guard. ``BacksolveAdjoint`` would
+re-integrate the stiff contact dynamics backwards (unstable, and only as accurate as the solver
+tolerance) and ``DirectAdjoint`` is only needed for forward mode (its memory grows with
+``max_steps``); both are available through ``SimParams.adjoint``.
+
+**Failure is a value.** Solves run with ``throw=False``; the vector field of a member whose state
+turns non-finite or leaves the bounds is zeroed (``f_bad`` starts to grow), so that member freezes,
+is flagged ``diverged`` in its result and never affects the other members of a batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import diffrax
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from ._control_types import AbstractController, ControlState, RefSample, make_environment
+from ._dynamics import LimitContact, forward_dynamics
+from ._kinematics import kinematics, poi_link_index, poi_positions_from
+from ._math import rot_to_quat
+from ._metrics import (
+    RunMetrics,
+    guidance_termination,
+    orientation_errors,
+    path_length,
+    position_errors,
+    run_metrics,
+)
+from ._obstacles import obstacle_distances
+from ._robot import Arm
+from ._scenario import Reference, Scenario
+
+__all__ = ["SimParams", "SimResult", "JointReference", "simulate", "simulate_batch", "simulate_dense",
+           "joint_reference"]
+
+
+def _arr(x):
+    return jnp.asarray(x)
+
+
+class SimParams(eqx.Module):
+    """Options of :func:`simulate`. Numbers are arrays (changing them never recompiles); the
+    choices marked static are structure.
+
+    * ``rtol``, ``atol``: tolerances of the PID step-size controller (SPEC U9: 1e-5 / 1e-7).
+    * ``pcoeff``, ``icoeff``: PID coefficients (``0, 1`` = the classic I controller).
+    * ``q_bound`` [rad or m], ``qd_bound`` [rad/s]: a state beyond these counts as diverged.
+    * ``contact``: joint-limit contact model (3.6).
+    * ``goal_radius`` [m]: success radius (0.10); ``guidance_rot_radius`` [m]: orientation switches
+      on within this distance of the goal for the gradient-guided controller (0.5 m [T]).
+    * ``lme_mu``, ``lme_max_jump``: local-minima estimator regularisation and largest accepted step
+      (U8: 1e-6, 2 m).
+    * static ``solver``: ``"tsit5"`` (default), ``"dopri5"``, ``"dopri8"``, ``"bosh3"``;
+      ``mode``: ``"horizon"`` or ``"per_sample"`` (see the module docstring);
+      ``adjoint``: ``"recursive"`` (default), ``"direct"``, ``"backsolve"``;
+      ``max_steps_per_sample``: step budget per sample (``max_steps = N *`` this);
+      ``guidance_samples``: horizon of gradient-guided runs (600 = 6 s); ``hold_samples``: the
+      hold before a gradient-guided run stops (100 = 1 s); ``buffer_size``: virtual obstacles (20).
+    * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
+    """
+
+    rtol: Float[Array, ""] = eqx.field(default=1e-5, converter=_arr)
+    atol: Float[Array, ""] = eqx.field(default=1e-7, converter=_arr)
+    pcoeff: Float[Array, ""] = eqx.field(default=0.0, converter=_arr)
+    icoeff: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
+    q_bound: Float[Array, ""] = eqx.field(default=100.0, converter=_arr)
+    qd_bound: Float[Array, ""] = eqx.field(default=1e3, converter=_arr)
+    contact: LimitContact = eqx.field(default_factory=LimitContact)
+    goal_radius: Float[Array, ""] = eqx.field(default=0.10, converter=_arr)
+    guidance_rot_radius: Float[Array, ""] = eqx.field(default=0.5, converter=_arr)
+    lme_mu: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
+    lme_max_jump: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
+    field: PyTree = None
+    solver: str = eqx.field(static=True, default="tsit5")
+    mode: str = eqx.field(static=True, default="horizon")
+    adjoint: str = eqx.field(static=True, default="recursive")
+    max_steps_per_sample: int = eqx.field(static=True, default=64)
+    guidance_samples: int = eqx.field(static=True, default=600)
+    hold_samples: int = eqx.field(static=True, default=100)
+    buffer_size: int = eqx.field(static=True, default=20)
+
+    def __check_init__(self):
+        if self.solver not in _SOLVERS:
+            raise ValueError(f"SimParams.solver: expected one of {sorted(_SOLVERS)}, got {self.solver!r}")
+        if self.mode not in ("horizon", "per_sample"):
+            raise ValueError(f"SimParams.mode: expected 'horizon' or 'per_sample', got {self.mode!r}")
+        if self.adjoint not in ("recursive", "direct", "backsolve"):
+            raise ValueError(f"SimParams.adjoint: expected 'recursive', 'direct' or 'backsolve', "
+                             f"got {self.adjoint!r}")
+        if self.max_steps_per_sample < 1:
+            raise ValueError("SimParams.max_steps_per_sample: must be >= 1")
+
+
+_SOLVERS = {
+    "tsit5": diffrax.Tsit5,
+    "dopri5": diffrax.Dopri5,
+    "dopri8": diffrax.Dopri8,
+    "bosh3": diffrax.Bosh3,
+}
+
+
+class JointReference(eqx.Module):
+    """Joint-space reference from the IK, ``(N, n)`` each: ``q`` (``q_k`` for ``k = 0..N-1``),
+    ``qd``, ``qdd`` (``qd_d[k]``, ``qdd_d[k]``; rows ``>= n_samples - 1`` are not used)."""
+
+    q: Float[Array, "N n"]
+    qd: Float[Array, "N n"]
+    qdd: Float[Array, "N n"]
+
+
+def joint_reference(ik, n_rows: int | None = None) -> JointReference:
+    """A :class:`JointReference` from an ``IKResult`` (attributes ``q, qd, qdd``) or a tuple
+    ``(q, qd, qdd)``; ``qd``/``qdd`` with one row fewer than ``q`` are padded with zeros."""
+    if isinstance(ik, JointReference):
+        return ik
+    if isinstance(ik, (tuple, list)):
+        q, qd, qdd = ik
+    else:
+        q, qd, qdd = ik.q, ik.qd, ik.qdd
+    q, qd, qdd = jnp.asarray(q), jnp.asarray(qd), jnp.asarray(qdd)
+    N = q.shape[-2] if n_rows is None else n_rows
+
+    def pad(x, name):
+        if x.shape[-2] == N:
+            return x
+        if x.shape[-2] == N - 1:
+            z = jnp.zeros(x.shape[:-2] + (1, x.shape[-1]), x.dtype)
+            return jnp.concatenate([x, z], axis=-2)
+        raise ValueError(f"ik.{name}: expected {N} or {N - 1} rows, got shape {x.shape}")
+
+    if q.shape[-2] != N:
+        raise ValueError(f"ik.q: expected {N} rows (one per reference sample), got shape {q.shape}")
+    return JointReference(q=q, qd=pad(qd, "qd"), qdd=pad(qdd, "qdd"))
+
+
+class SimResult(eqx.Module):
+    """Result of one run (a leading batch axis under :func:`simulate_batch`).
+
+    Per sample ``k`` (``N`` rows, saved at the sample end ``t_{k+1}``): ``t``, ``q``, ``qd``, ``p``,
+    ``quat`` (end-effector pose), ``pos_err`` (against the held sample ``k``; gradient-guided: against
+    the goal), ``ori_err`` (``sin(phi/2)``; meaningful where ``rot = 1``), ``min_dist`` (smallest POI
+    signed distance), ``f_obs``, ``f_jl`` (integrated flags), ``rot``, ``mask`` (valid samples; for
+    gradient-guided runs, up to the stop).
+
+    Per run: ``metrics`` (:class:`~redman_jax._metrics.RunMetrics`), ``n_samples``, ``path_length``
+    [m], ``time_to_goal`` [s] (gradient-guided; ``inf`` otherwise), diagnostics ``n_steps``,
+    ``n_accepted``, ``n_rejected``, ``status`` (0 = every solve successful, else a diffrax
+    ``RESULTS`` code), ``diverged``, and the final controller state ``z``.
+
+    Gradient-guided runs also keep every estimate of the local-minima estimator (``estimates``
+    ``(N, 3)``, ``estimate_valid`` ``(N,)``, the estimate made at the start of sample ``k``) and the
+    final virtual-obstacle buffer (``virtual_p``, ``virtual_mask``); zeros otherwise.
+    """
+
+    t: Float[Array, " N"]
+    q: Float[Array, "N n"]
+    qd: Float[Array, "N n"]
+    p: Float[Array, "N 3"]
+    quat: Float[Array, "N 4"]
+    pos_err: Float[Array, " N"]
+    ori_err: Float[Array, " N"]
+    min_dist: Float[Array, " N"]
+    f_obs: Float[Array, " N"]
+    f_jl: Float[Array, " N"]
+    rot: Float[Array, " N"]
+    mask: Bool[Array, " N"]
+    metrics: RunMetrics
+    n_samples: Int[Array, ""]
+    path_length: Float[Array, ""]
+    time_to_goal: Float[Array, ""]
+    n_steps: Int[Array, ""]
+    n_accepted: Int[Array, ""]
+    n_rejected: Int[Array, ""]
+    status: Int[Array, ""]
+    diverged: Bool[Array, ""]
+    z: PyTree
+    estimates: Float[Array, "N 3"]
+    estimate_valid: Bool[Array, " N"]
+    virtual_p: Float[Array, "B 3"]
+    virtual_mask: Bool[Array, " B"]
+
+    @property
+    def success(self):
+        return self.metrics.success
+
+
+class _Y(eqx.Module):
+    """ODE state: joints, controller state and the flags ``(f_obs, f_jl, f_bad)``."""
+
+    q: Array
+    qd: Array
+    z: PyTree
+    f: Array
+
+
+def _pack_z(z, dtype):
+    """diffrax cannot carry an empty subtree in the state: a controller without integrated state
+    (``z = ()``) is carried as a zero-size array and handed back as ``()``."""
+    return jnp.zeros((0,), dtype) if not jax.tree.leaves(z) else z
+
+
+def _unpack_z(z):
+    return () if isinstance(z, jax.Array) and z.shape == (0,) else z
+
+
+def _state_norm(y: _Y):
+    """RMS norm of the scaled error over ``q, qd, z``: the flag states are excluded (SPEC 10)."""
+    return optx.rms_norm((y.q, y.qd, y.z))
+
+
+# --------------------------------------------------------------------------------------------
+# reference zero-order hold
+
+
+def _ref_sample(ref: Reference, jref: JointReference | None, k, n: int, dtype) -> RefSample:
+    """The sample held during sample ``k`` (clipped to the valid range). Joint space (SPEC 6):
+    ``(q_k, qd_d[k], qdd_d[k])`` for ``k <= N_s - 2`` and ``(q_{N_s-1}, 0, 0)`` afterwards."""
+    last = ref.n_samples - 1
+    kk = jnp.clip(k, 0, last)
+    if jref is None:
+        zq = jnp.zeros((n,), dtype)
+        jq, jqd, jqdd = zq, zq, zq
+    else:
+        moving = k < last
+        jq = jref.q[kk]
+        jqd = jnp.where(moving, jref.qd[kk], 0.0)
+        jqdd = jnp.where(moving, jref.qdd[kk], 0.0)
+    return RefSample(p=ref.p[kk], v=ref.v[kk], a=ref.a[kk], quat=ref.quat[kk], omega=ref.omega[kk],
+                     omega_dot=ref.omega_dot[kk], rot=ref.rot[kk].astype(dtype), q=jq, qd=jqd, qdd=jqdd)
+
+
+def _goal_sample(goal_p, goal_quat, rot, n, dtype) -> RefSample:
+    """Held 'reference' of the gradient-guided controller: the goal pose, at rest."""
+    z3 = jnp.zeros((3,), dtype)
+    zq = jnp.zeros((n,), dtype)
+    return RefSample(p=goal_p, v=z3, a=z3, quat=goal_quat, omega=z3, omega_dot=z3,
+                     rot=jnp.asarray(rot, dtype), q=zq, qd=zq, qdd=zq)
+
+
+# --------------------------------------------------------------------------------------------
+# vector field
+
+
+def _poi_thresholds(arm: Arm, dtype):
+    return arm.widths.astype(dtype)[jnp.asarray(poi_link_index(arm))]
+
+
+def _min_poi_distance(arm: Arm, kin, q, obstacles):
+    pois = poi_positions_from(arm, kin, q)
+    d = jax.vmap(lambda x: obstacle_distances(obstacles, x))(pois)  # (m, K)
+    return jnp.min(d, axis=1)  # (m,)
+
+
+def _all_finite(tree) -> Array:
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, params: SimParams) -> _Y:
+    """``dy/dt`` of the closed loop for the held sample ``rs``; zero when ``active`` is False or the
+    member diverged (see the module docstring)."""
+    dtype = y.q.dtype
+    out = controller(gains, arm, ControlState(t=t, q=y.q, qd=y.qd, z=_unpack_z(y.z)), rs, env)
+    dz = _pack_z(out.dz, dtype)
+    qdd = forward_dynamics(arm, y.q, y.qd, out.tau, params.contact)
+    kin = kinematics(arm, y.q)
+    dmin = _min_poi_distance(arm, kin, y.q, env.obstacles)
+    in_collision = jnp.any(dmin < _poi_thresholds(arm, dtype))
+    outside = jnp.any(arm.limited & ((y.q < arm.q_min) | (y.q > arm.q_max)))
+    ok = (_all_finite((qdd, dz, y.q, y.qd, y.z))
+          & jnp.all(jnp.abs(y.q) < params.q_bound) & jnp.all(jnp.abs(y.qd) < params.qd_bound))
+    on = ok & active
+    gate = lambda x: jnp.where(on, jnp.where(jnp.isfinite(x), x, 0.0), 0.0).astype(x.dtype)
+    f = jnp.stack([on & in_collision, on & outside, active & ~ok]).astype(dtype)
+    return _Y(q=gate(y.qd), qd=gate(qdd), z=jax.tree.map(gate, dz), f=f)
+
+
+def _make_solver(params: SimParams):
+    return _SOLVERS[params.solver]()
+
+
+def _make_adjoint(params: SimParams):
+    if params.adjoint == "recursive":
+        return diffrax.RecursiveCheckpointAdjoint()
+    if params.adjoint == "direct":
+        return diffrax.DirectAdjoint()
+    return diffrax.BacksolveAdjoint()
+
+
+def _pid(params: SimParams, jump_ts=None):
+    pid = diffrax.PIDController(rtol=params.rtol, atol=params.atol, pcoeff=params.pcoeff,
+                                icoeff=params.icoeff, norm=_state_norm)
+    if jump_ts is None:
+        return pid
+    return diffrax.ClipStepSizeController(pid, jump_ts=jump_ts)
+
+
+# --------------------------------------------------------------------------------------------
+# integration drivers
+
+
+def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=None, dense=False):
+    """One ``diffeqsolve`` over ``[0, N t_s]`` with ``jump_ts`` at every sample boundary."""
+    N = ref.capacity
+    n = arm.n_dof
+    dtype = y0.q.dtype
+    ts = ref.ts.astype(dtype)
+    ends = ts * jnp.arange(1, N + 1, dtype=dtype)  # sample ends (k+1) t_s
+    bounds = ends[:-1]  # jump times, the same floats the ZOH index is computed against
+    t1 = ends[-1]
+    t_stop = ts * ref.n_samples.astype(dtype)  # frozen after the last valid sample
+
+    def vf(t, y, args):
+        k = jnp.searchsorted(bounds, t, side="right")
+        rs = _ref_sample(ref, jref, k, n, dtype)
+        return _closed_loop(t, y, rs, env, t < t_stop, arm, controller, gains, params)
+
+    saveat = diffrax.SaveAt(ts=ends if save_ts is None else save_ts, dense=dense)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf), _make_solver(params), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
+        saveat=saveat, stepsize_controller=_pid(params, jump_ts=bounds if N > 1 else None),
+        adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample * N, throw=False)
+    stats = (sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
+    return sol, stats, sol.result._value
+
+
+def _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0, active, params):
+    """One warm-started ``diffeqsolve`` over sample ``k``, ``[k t_s, (k+1) t_s]``."""
+    dtype = y.q.dtype
+    t0 = ts * k.astype(dtype)
+    t1 = ts * (k + 1).astype(dtype)
+
+    def vf(t, yy, args):
+        return _closed_loop(t, yy, rs, env, active, arm, controller, gains, params)
+
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf), _make_solver(params), t0=t0, t1=t1, dt0=dt0, y0=y,
+        saveat=diffrax.SaveAt(t1=True), stepsize_controller=_pid(params),
+        adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample, throw=False)
+    y1 = jax.tree.map(lambda x: x[-1], sol.ys)
+    acc = sol.stats["num_accepted_steps"]
+    dt_next = jnp.minimum(ts / jnp.maximum(acc, 1).astype(dtype), ts)
+    stats = jnp.stack([sol.stats["num_steps"], acc, sol.stats["num_rejected_steps"]]).astype(jnp.int32)
+    return y1, dt_next, stats, sol.result._value
+
+
+def _solve_per_sample(arm, controller, gains, ref, jref, env, y0, params):
+    """``lax.scan`` over samples, one warm-started solve each (``dt0`` = previous mean step)."""
+    N = ref.capacity
+    n = arm.n_dof
+    dtype = y0.q.dtype
+    ts = ref.ts.astype(dtype)
+
+    def body(carry, k):
+        y, dt0 = carry
+        rs = _ref_sample(ref, jref, k, n, dtype)
+        y1, dt_next, stats, status = _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0,
+                                                   k < ref.n_samples, params)
+        return (y1, dt_next), (y1, stats, status)
+
+    _, (ys, stats, status) = jax.lax.scan(body, (y0, ts), jnp.arange(N))
+    return ys, stats.sum(0), jnp.max(status)
+
+
+# --------------------------------------------------------------------------------------------
+# results
+
+
+def _ee_pose_batch(arm, q):
+    def one(qq):
+        T = kinematics(arm, qq).ee
+        return T[:3, 3], rot_to_quat(T[:3, :3])
+
+    return jax.vmap(one)(q)
+
+
+def _min_dist_batch(arm, q, obstacles):
+    return jax.vmap(lambda qq: jnp.min(_min_poi_distance(arm, kinematics(arm, qq), qq, obstacles)))(q)
+
+
+def _initial_state(arm, controller, q0, qd0, dtype):
+    q0 = arm.q0.astype(dtype) if q0 is None else jnp.asarray(q0, dtype)
+    qd0 = jnp.zeros_like(q0) if qd0 is None else jnp.asarray(qd0, dtype)
+    z0 = _pack_z(controller.init_state(arm, q0, qd0), dtype)
+    return _Y(q=q0, qd=qd0, z=z0, f=jnp.zeros((3,), dtype))
+
+
+def _diverged(ys: _Y, status):
+    finite = _all_finite((ys.q, ys.qd))
+    return (jnp.max(ys.f[..., 2]) > 0) | (~finite) | (status != 0)
+
+
+def _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params) -> SimResult:
+    ref = scenario.reference
+    dtype = ref.p.dtype
+    env = make_environment(scenario.obstacles, scenario.goal_p, scenario.goal_quat, params.buffer_size)
+    y0 = _initial_state(arm, controller, q0, qd0, dtype)
+    N = ref.capacity
+    if params.mode == "horizon":
+        sol, (ns, na, nr), status = _solve_horizon(arm, controller, gains, ref, jref, env, y0, params)
+        ys = sol.ys
+        steps = jnp.stack([ns, na, nr]).astype(jnp.int32)
+    else:
+        ys, steps, status = _solve_per_sample(arm, controller, gains, ref, jref, env, y0, params)
+    status = jnp.asarray(status, jnp.int32)
+    p, quat = _ee_pose_batch(arm, ys.q)
+    mask = ref.mask & (jnp.arange(N) < ref.n_samples)
+    pos_err = position_errors(p, ref.p)
+    ori_err = orientation_errors(quat, ref.quat)
+    last = ref.n_samples - 1
+    diverged = _diverged(ys, status)
+    final_err = jnp.linalg.norm(p[last] - scenario.goal_p)
+    final_err = jnp.where(jnp.isfinite(final_err), final_err, jnp.inf)
+    metrics = run_metrics(pos_err, ori_err, ref.rot, mask, final_err, ys.f[last, 0], ys.f[last, 1],
+                          diverged, params.goal_radius)
+    p0, _ = _ee_pose_batch(arm, y0.q[None])
+    B = params.buffer_size
+    return SimResult(
+        t=ref.ts.astype(dtype) * jnp.arange(1, N + 1, dtype=dtype), q=ys.q, qd=ys.qd, p=p, quat=quat,
+        pos_err=pos_err, ori_err=ori_err, min_dist=_min_dist_batch(arm, ys.q, scenario.obstacles),
+        f_obs=ys.f[:, 0], f_jl=ys.f[:, 1], rot=ref.rot.astype(dtype), mask=mask, metrics=metrics,
+        n_samples=ref.n_samples.astype(jnp.int32), path_length=path_length(p0[0], p, mask),
+        time_to_goal=jnp.asarray(jnp.inf, dtype), n_steps=steps[0], n_accepted=steps[1],
+        n_rejected=steps[2], status=status, diverged=diverged, z=_unpack_z(jax.tree.map(lambda x: x[last], ys.z)),
+        estimates=jnp.zeros((N, 3), dtype), estimate_valid=jnp.zeros((N,), bool),
+        virtual_p=jnp.zeros((B, 3), dtype), virtual_mask=jnp.zeros((B,), bool),
+    )
+
+
+def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimResult:
+    """Gradient-guided run (thesis 3.3.3, SPEC 9): per-sample solves; at each sample start the
+    local-minima estimator pushes an estimate into the virtual-obstacle buffer and the orientation
+    latch switches on within ``guidance_rot_radius`` of the goal. Runs the full 6 s horizon and
+    applies the stop rule afterwards (exact, as stopping does not change the past)."""
+    from ._guidance import VirtualBuffer, estimator_update, field_params_or_default
+
+    dtype = scenario.goal_p.dtype
+    n = arm.n_dof
+    N = params.guidance_samples
+    ts = scenario.reference.ts.astype(dtype)
+    fparams = field_params_or_default(params.field, gains)
+    env0 = make_environment(scenario.obstacles, scenario.goal_p, scenario.goal_quat, params.buffer_size)
+    y0 = _initial_state(arm, controller, q0, qd0, dtype)
+    buf0 = VirtualBuffer.empty(params.buffer_size, dtype)
+
+    def body(carry, k):
+        y, dt0, buf, rot = carry
+        x = kinematics(arm, y.q).ee[:3, 3]
+        buf, x_min, valid = estimator_update(x, scenario.goal_p, scenario.obstacles, buf, fparams,
+                                             params.lme_mu, params.lme_max_jump)
+        rot = jnp.maximum(rot, (jnp.linalg.norm(x - scenario.goal_p) < params.guidance_rot_radius)
+                          .astype(dtype))
+        env = eqx.tree_at(lambda e: (e.virtual_p, e.virtual_mask), env0, (buf.p, buf.mask))
+        rs = _goal_sample(scenario.goal_p, scenario.goal_quat, rot, n, dtype)
+        y1, dt_next, stats, status = _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0,
+                                                   jnp.asarray(True), params)
+        return (y1, dt_next, buf, rot), (y1, stats, status, x_min, valid, rot)
+
+    carry0 = (y0, ts, buf0, jnp.zeros((), dtype))
+    (_, _, buf, _), (ys, stats, status, est, est_ok, rots) = jax.lax.scan(body, carry0, jnp.arange(N))
+    status = jnp.max(status).astype(jnp.int32)
+    steps = stats.sum(0)
+    p, quat = _ee_pose_batch(arm, ys.q)
+    goal_err = position_errors(p, jnp.broadcast_to(scenario.goal_p, p.shape))
+    goal_err = jnp.where(jnp.isfinite(goal_err), goal_err, jnp.inf)
+    ori_err = orientation_errors(quat, jnp.broadcast_to(scenario.goal_quat, quat.shape))
+    diverged = _diverged(ys, status)
+    # collisions up to the stop only: first find the stop ignoring collisions, then read the flags
+    term0 = guidance_termination(goal_err, ts, False, hold_samples=params.hold_samples,
+                                 radius=params.goal_radius)
+    last = term0.n_samples - 1
+    collided = ys.f[last, 0] > 0
+    term = guidance_termination(goal_err, ts, collided | diverged, hold_samples=params.hold_samples,
+                                radius=params.goal_radius)
+    metrics = run_metrics(goal_err, ori_err, rots, term.mask, term.final_err, ys.f[last, 0],
+                          ys.f[last, 1], diverged, params.goal_radius)
+    metrics = eqx.tree_at(lambda m: (m.success, m.cause), metrics,
+                          (term.success, jnp.where(diverged, 3, jnp.where(collided, 1, jnp.where(
+                              term.success, 0, 2))).astype(jnp.int32)))
+    p0 = kinematics(arm, y0.q).ee[:3, 3]
+    return SimResult(
+        t=ts * jnp.arange(1, N + 1, dtype=dtype), q=ys.q, qd=ys.qd, p=p, quat=quat, pos_err=goal_err,
+        ori_err=ori_err, min_dist=_min_dist_batch(arm, ys.q, scenario.obstacles), f_obs=ys.f[:, 0],
+        f_jl=ys.f[:, 1], rot=rots, mask=term.mask, metrics=metrics, n_samples=term.n_samples,
+        path_length=path_length(p0, p, term.mask), time_to_goal=term.time_to_goal,
+        n_steps=steps[0], n_accepted=steps[1], n_rejected=steps[2], status=status, diverged=diverged,
+        z=_unpack_z(jax.tree.map(lambda x: x[last], ys.z)), estimates=est, estimate_valid=est_ok,
+        virtual_p=buf.p, virtual_mask=buf.mask,
+    )
+
+
+def _simulate_core(arm, scenario, controller, gains, jref, q0, qd0, params) -> SimResult:
+    if controller.uses_guidance:
+        return _simulate_guided(arm, scenario, controller, gains, q0, qd0, params)
+    return _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params)
+
+
+_simulate_jit = eqx.filter_jit(_simulate_core)
+
+
+def _check_inputs(arm, scenario, controller, ik, batched: bool):
+    if not isinstance(arm, Arm):
+        raise ValueError(f"arm: expected an Arm, got {type(arm).__name__}")
+    if not isinstance(scenario, Scenario):
+        raise ValueError(f"scenario: expected a Scenario, got {type(scenario).__name__}")
+    if not isinstance(controller, AbstractController):
+        raise ValueError(f"controller: expected an AbstractController, got {type(controller).__name__}")
+    if controller.needs_joint_reference and ik is None:
+        raise ValueError(f"ik: {type(controller).__name__} is a joint-space controller and needs the "
+                         "IK's joint reference (ik=IKResult or (q, qd, qdd))")
+    nd = 2 if batched else 1
+    if scenario.reference.p.ndim != nd + 1:
+        raise ValueError(f"scenario.reference.p: expected {nd + 1} dimensions "
+                         f"({'batched' if batched else 'single'} scenario), got shape "
+                         f"{scenario.reference.p.shape}")
+
+
+def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains, ik=None,
+             params: SimParams | None = None, *, q0=None, qd0=None) -> SimResult:
+    """Simulate one closed-loop run (jit-compiled; see the module docstring).
+
+    **Arguments**
+    * ``arm``, ``scenario`` (unbatched), ``controller`` and its ``gains``;
+    * ``ik``: the joint-space reference for joint-space controllers (an ``IKResult`` or
+      ``(q, qd, qdd)`` with ``N`` rows, see :func:`joint_reference`);
+    * ``params``: :class:`SimParams`; ``q0``, ``qd0``: initial state (default ``arm.q0``, rest).
+
+    **Returns** a :class:`SimResult`. Differentiable w.r.t. ``gains``, ``q0``, ``qd0`` and the
+    scenario's numbers (``RecursiveCheckpointAdjoint``).
+
+    **Raises** ``ValueError`` for a wrong argument type or a missing joint reference.
+    """
+    params = SimParams() if params is None else params
+    _check_inputs(arm, scenario, controller, ik, batched=False)
+    jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
+
+
+@eqx.filter_jit
+def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params, gains_axis, q0_axis):
+    def one(s, g, j, q, qd):
+        return _simulate_core(arm, s, controller, g, j, q, qd, params)
+
+    in_axes = (0, gains_axis, None if jref is None else 0, q0_axis, q0_axis)
+    return jax.vmap(one, in_axes=in_axes)(scenarios, gains, jref, q0, qd0)
+
+
+def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController, gains, ik=None,
+                   params: SimParams | None = None, *, batch_gains: bool = False, q0=None,
+                   qd0=None) -> SimResult:
+    """Simulate a batch of runs in one ``jit(vmap(...))`` call.
+
+    ``scenarios``: stacked scenarios (leading axis ``R``; :func:`~redman_jax.stack_scenarios`);
+    ``ik``: joint references with a leading axis ``R`` (or None); ``batch_gains``: ``gains`` has a
+    leading axis ``R`` too (a sweep); ``q0``: per-run initial configurations ``(R, n)`` (or None).
+    Each member keeps its own step sizes; a member that diverges is frozen and flagged and does not
+    change the others (they are bit-identical to a batch without it). Returns a :class:`SimResult`
+    with a leading axis ``R``.
+    """
+    params = SimParams() if params is None else params
+    _check_inputs(arm, scenarios, controller, ik, batched=True)
+    jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
+    if q0 is not None and qd0 is None:
+        qd0 = jnp.zeros_like(jnp.asarray(q0))
+    return _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params,
+                               0 if batch_gains else None, None if q0 is None else 0)
+
+
+@eqx.filter_jit
+def _simulate_dense_jit(arm, scenario, controller, gains, jref, q0, qd0, params, points_per_sample):
+    ref = scenario.reference
+    dtype = ref.p.dtype
+    N = ref.capacity
+    m = points_per_sample
+    ts = ref.ts.astype(dtype)
+    k = jnp.repeat(jnp.arange(N), m)
+    frac = jnp.tile(jnp.arange(1, m + 1, dtype=dtype) / m, N)
+    grid = ts * (k.astype(dtype) + frac)
+    grid = grid.at[m - 1::m].set(ts * jnp.arange(1, N + 1, dtype=dtype))  # exact sample ends
+    env = make_environment(scenario.obstacles, scenario.goal_p, scenario.goal_quat, params.buffer_size)
+    y0 = _initial_state(arm, controller, q0, qd0, dtype)
+    sol, _, status = _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=grid)
+    p, quat = _ee_pose_batch(arm, sol.ys.q)
+    kk = jnp.clip(k, 0, ref.n_samples - 1)
+    return grid, k, sol.ys.q, p, quat, position_errors(p, ref.p[kk]), orientation_errors(quat, ref.quat[kk])
+
+
+def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams | None = None, *,
+                   points_per_sample: int = 20, q0=None, qd0=None):
+    """Re-simulate one tracking run and sample it ``points_per_sample`` times per sample (the
+    last point of each sample is its end). Saving extra times does not change the steps taken, so
+    the trajectory is the one of :func:`simulate`.
+
+    Returns ``(t, k, q, p, quat, pos_err, ori_err)`` on the fine grid; ``k`` is the sample held on
+    ``(k t_s, (k+1) t_s]`` and the errors are against that held sample (Figure 4.3).
+    """
+    params = SimParams() if params is None else params
+    if params.mode != "horizon":
+        params = dataclasses.replace(params, mode="horizon")
+    _check_inputs(arm, scenario, controller, ik, batched=False)
+    if controller.uses_guidance:
+        raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
+    jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    return _simulate_dense_jit(arm, scenario, controller, gains, jref, q0, qd0, params, points_per_sample)
