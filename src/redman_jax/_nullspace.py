@@ -1,0 +1,437 @@
+"""Null-space projection and null-space policies (thesis 2.5-2.6, 3.3.4-3.3.5; SPEC section 7).
+
+Projection
+----------
+* **Adaptive damped pseudo-inverse** (3.29, 3.32): ``J# = J^T (J J^T + lam^2 I)^-1`` with
+  ``lam = max(ratio * sigma_min(J), floor)``, ``ratio = 0.1``, ``floor = 0.01`` (E31: implemented
+  literally). ``sigma_min`` is *not* taken from a full SVD: ``sigma_min^2`` is the smallest eigenvalue
+  of the small Gram matrix ``G = J J^T`` (``k x k``, ``k <= 6``), found by Laguerre's iteration on
+  ``det(G - mu I)`` from ``mu = 0`` (all roots real: monotone, cubically convergent; four unrolled
+  steps of a ``k x k`` Cholesky inverse). It is about 10x cheaper than ``eigvalsh`` under ``vmap``
+  on CPU (``benchmarks/bench_controllers.py``) and has an exact derivative ``d mu = v^T dG v``
+  (``custom_jvp``).
+* **Row masks.** Orientation control switches per sample (3.13-3.14) without changing shapes:
+  the inactive rows of the 6-row task are zeroed and excluded from ``sigma_min`` (their Gram block is
+  shifted far above the spectrum). ``J^T (J J^T + lam^2 I)^-1`` is block diagonal in active/inactive
+  rows, so the zeroed rows contribute exactly nothing: the result equals the explicit 3-row damped
+  pseudo-inverse (tested).
+* **Orthogonal projector** (2.32, 3.30): ``N = I - J# J``; null-space term ``alpha N h`` (alpha 0.1).
+* **Oblique (weighted) projectors** (2.36 corrected, E11): torque level
+  ``P_tau = I - J^T (J W^-1 J^T)^-1 J W^-1`` (``P_tau J^T = 0``, ``J W^-1 P_tau = 0``) and
+  velocity/acceleration level ``P_v = I - W^-1 J^T (J W^-1 J^T)^-1 J`` (``J P_v = 0``); with
+  ``W = M`` the torque form is the dynamically consistent projector. ``P_tau`` is not a valid
+  acceleration-level projector (``J P_tau != 0``).
+* **Task priority** (2.5.3): ``q_d = J1# x1 + (J2 N1)# (x2 - J2 J1# x1)``.
+
+Leak of the damped projector (tested): with ``J = U S V^T`` (``k`` singular values ``s_i``),
+``J N = J - J J# J = U diag(s_i - s_i^3 / (s_i^2 + lam^2)) V^T = U diag(s_i lam^2 / (s_i^2 + lam^2)) V^T``,
+so ``|J N h| <= max_i s_i lam^2 / (s_i^2 + lam^2) |h| <= lam / 2 |h|`` (the maximum over ``s`` of
+``s lam^2 / (s^2 + lam^2)`` is ``lam / 2`` at ``s = lam``), and ``<= lam^2 / sigma_min |h|`` when
+``sigma_min >= lam``.
+
+Policies (acceleration domain, 3.33): ``h = q_dd_obs + q_dd_jl + q_dd_damp`` with
+
+* obstacles (3.34 corrected, E9): ``q_dd_obs = sum_{poi} J_poi^T (-gamma sum_o grad V_o(x_poi))``,
+  ``gamma = 1000``, ``a = 0.05``, ``D = 0.75`` (point Jacobians by default; ``mode="link"`` uses one
+  rigid link Jacobian per link at the segment midpoint, as the thesis did);
+* joint limits (3.35 simplified, E12): ``-a u / (h_j^2 - u^2)^(3/2)`` inside, ``-sign(u) outside``
+  beyond the limits, ``u = q - q_mid``, ``h_j`` the half range; zero on unlimited joints;
+* damping (3.36): ``-G_d q_d``, ``G_d = 800``.
+
+The velocity-domain variants of the IK (3.3.6, E17, U23) use :func:`ik_policy_gains`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._kinematics import Kinematics, poi_jacobians_from, poi_link_index, poi_positions_from
+from ._robot import Arm
+
+__all__ = [
+    "PolicyGains",
+    "ik_policy_gains",
+    "smallest_eigenvalue",
+    "damping_factor",
+    "damped_pinv",
+    "damped_solve",
+    "nullspace_projector",
+    "oblique_projector",
+    "task_priority",
+    "obstacle_gradients",
+    "obstacle_policy",
+    "joint_limit_policy",
+    "damping_policy",
+    "nullspace_policy",
+    "masked_task_jacobian",
+]
+
+_LAGUERRE_ITERS = 4
+
+
+def _arr(x):
+    return jnp.asarray(x)
+
+
+class PolicyGains(eqx.Module):
+    """Gains of the null-space projection and policies (acceleration domain defaults, SPEC section 7).
+
+    * ``alpha``: null-space gain of 3.30 (0.1);
+    * ``lam_ratio``, ``lam_floor``: adaptive damping of 3.32 (0.1, 0.01);
+    * ``gamma``, ``obs_a``, ``obs_D``: obstacle policy multiplier, potential amplitude and range
+      (1000, 0.05, 0.75 m; 3.34);
+    * ``jl_a``, ``jl_outside``: joint-limit policy gain and out-of-range value (100, 5000; 3.35);
+    * ``damping``: null-space damping gain ``G_d`` (800; 3.36).
+
+    All fields are arrays (Python floats are converted), so sweeping or differentiating them never
+    recompiles.
+    """
+
+    alpha: Float[Array, ""] = eqx.field(default=0.1, converter=_arr)
+    lam_ratio: Float[Array, ""] = eqx.field(default=0.1, converter=_arr)
+    lam_floor: Float[Array, ""] = eqx.field(default=0.01, converter=_arr)
+    gamma: Float[Array, ""] = eqx.field(default=1000.0, converter=_arr)
+    obs_a: Float[Array, ""] = eqx.field(default=0.05, converter=_arr)
+    obs_D: Float[Array, ""] = eqx.field(default=0.75, converter=_arr)
+    jl_a: Float[Array, ""] = eqx.field(default=100.0, converter=_arr)
+    jl_outside: Float[Array, ""] = eqx.field(default=5000.0, converter=_arr)
+    damping: Float[Array, ""] = eqx.field(default=800.0, converter=_arr)
+
+
+def ik_policy_gains() -> PolicyGains:
+    """Velocity-domain policy gains of the IK (3.3.6; E17, U23): obstacle ``gamma = 10``,
+    joint-limit ``a = 1`` and ``50`` outside the range, no damping policy, ``alpha = 0.1``."""
+    return PolicyGains(gamma=10.0, jl_a=1.0, jl_outside=50.0, damping=0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Small dense linear algebra, unrolled (k <= 6): vectorises over a vmapped batch on CPU, where
+# LAPACK calls on tiny matrices are dominated by per-matrix overhead.
+# ----------------------------------------------------------------------------------------------
+
+
+def _cholesky_rows(A, floor):
+    """Lower Cholesky factor of the symmetric ``A`` (k x k) as nested lists of scalars.
+
+    Pivots are clamped at ``floor`` (> 0): a (numerically) singular or slightly indefinite ``A``
+    gives a huge but finite factor instead of NaN.
+    """
+    k = A.shape[-1]
+    L = [[None] * k for _ in range(k)]
+    inv_diag = [None] * k
+    for j in range(k):
+        s = A[j, j]
+        for p in range(j):
+            s = s - L[j][p] * L[j][p]
+        d = jnp.sqrt(jnp.maximum(s, floor))
+        L[j][j] = d
+        inv_diag[j] = 1.0 / d
+        for i in range(j + 1, k):
+            s = A[i, j]
+            for p in range(j):
+                s = s - L[i][p] * L[j][p]
+            L[i][j] = s * inv_diag[j]
+    return L, inv_diag
+
+
+def _cho_solve_rows(L, inv_diag, B):
+    """Solve ``L L^T X = B`` for ``B`` (k, r) with the factor of :func:`_cholesky_rows`."""
+    k = len(L)
+    y = [None] * k
+    for i in range(k):
+        s = B[i]
+        for p in range(i):
+            s = s - L[i][p] * y[p]
+        y[i] = s * inv_diag[i]
+    x = [None] * k
+    for i in reversed(range(k)):
+        s = y[i]
+        for p in range(i + 1, k):
+            s = s - L[p][i] * x[p]
+        x[i] = s * inv_diag[i]
+    return jnp.stack(x)
+
+
+def _spd_inverse(A, floor):
+    """Inverse of a symmetric positive definite ``k x k`` matrix (unrolled Cholesky)."""
+    k = A.shape[-1]
+    L, inv_diag = _cholesky_rows(A, floor)
+    return _cho_solve_rows(L, inv_diag, jnp.eye(k, dtype=A.dtype))
+
+
+def _pivot_floor(G):
+    eps = jnp.finfo(G.dtype).eps
+    return 16 * eps * (jnp.trace(G) + jnp.finfo(G.dtype).tiny / eps)
+
+
+def _laguerre(G):
+    """Smallest eigenvalue of the SPD ``G`` by Laguerre's method on ``det(G - mu I)``, polished by a
+    Rayleigh quotient.
+
+    With ``X = (G - mu I)^-1``: ``g = sum 1/(l_i - mu) = tr X``, ``H = sum 1/(l_i - mu)^2 = |X|_F^2``,
+    and the step ``k / (g + sqrt((k-1)(k H - g^2)))``. From ``mu = 0 <= l_min`` the iterates increase
+    monotonically to ``l_min`` (all roots real), cubically for a simple root but only linearly for a
+    (near-)double one, which symmetric arm poses produce. The final value is therefore the Rayleigh
+    quotient of the inverse-iteration vector ``v = X X e_j`` (``j`` the largest diagonal of ``X``):
+    an upper bound whose error is quadratic in the vector error and which is exact for any vector in
+    a degenerate eigenspace. Returns ``(l_min, v)`` (``v`` unnormalised, for the derivative).
+    """
+    k = G.shape[-1]
+    if k == 1:
+        return G[0, 0], jnp.ones((1,), G.dtype)
+    floor = _pivot_floor(G)
+    eye = jnp.eye(k, dtype=G.dtype)
+    mu = jnp.zeros((), G.dtype)
+    X = None
+    for _ in range(_LAGUERRE_ITERS):
+        X = _spd_inverse(G - mu * eye, floor)
+        g = jnp.trace(X)
+        H = jnp.sum(X * X)
+        disc = jnp.sqrt(jnp.maximum((k - 1) * (k * H - g * g), 0.0))
+        mu = mu + k / (g + disc)
+    X = X / jnp.max(jnp.abs(X))
+    d = jnp.diagonal(X)
+    e = (jnp.arange(k) == jnp.argmax(d)).astype(G.dtype)
+    v = X @ (X @ e)
+    v = v / jnp.max(jnp.abs(v))
+    rq = (v @ G @ v) / (v @ v)
+    return rq, v
+
+
+@jax.custom_jvp
+def smallest_eigenvalue(G: Float[Array, "k k"]) -> Float[Array, ""]:
+    """Smallest eigenvalue of a small symmetric positive semi-definite matrix (no SVD / eigh).
+
+    Laguerre's iteration plus a Rayleigh-quotient polish (see :func:`_laguerre`), 4 unrolled
+    ``k x k`` Cholesky inverses: relative accuracy ~1e-12 on the arm's Gram matrices, also for
+    (near-)double eigenvalues (tested against ``numpy.linalg.eigvalsh``). Derivative:
+    ``v^T dG v / v^T v`` with the same vector.
+    """
+    return _laguerre(G)[0]
+
+
+@smallest_eigenvalue.defjvp
+def _smallest_eigenvalue_jvp(primals, tangents):
+    (G,), (dG,) = primals, tangents
+    mu, v = _laguerre(jax.lax.stop_gradient(G))
+    dmu = (v @ dG @ v) / (v @ v)
+    return mu, dmu
+
+
+def _row_mask(k, row_mask, dtype):
+    if row_mask is None:
+        return jnp.ones((k,), bool)
+    return jnp.asarray(row_mask).astype(bool)
+
+
+def masked_task_jacobian(J: Float[Array, "k n"], row_mask) -> Float[Array, "k n"]:
+    """``J`` with the inactive rows (``row_mask`` False) zeroed."""
+    return jnp.where(_row_mask(J.shape[0], row_mask, J.dtype)[:, None], J, 0.0)
+
+
+def damping_factor(J: Float[Array, "k n"], ratio=0.1, floor=0.01, *, row_mask=None,
+                   method: str = "laguerre") -> Float[Array, ""]:
+    """Adaptive damping ``lam = max(ratio * sigma_min(J_active), floor)`` (3.31-3.32).
+
+    ``sigma_min`` is over the active rows only (``row_mask``; all rows if None). ``method``:
+    ``"laguerre"`` (default, see :func:`smallest_eigenvalue`), ``"eigvalsh"`` or ``"svd"`` (references).
+    """
+    k = J.shape[0]
+    m = _row_mask(k, row_mask, J.dtype)
+    Jm = jnp.where(m[:, None], J, 0.0)
+    if method == "svd":
+        # Reference only: push inactive rows' singular values above the spectrum.
+        G = Jm @ Jm.T
+        shift = jnp.trace(G) + 1.0
+        Gs = G + jnp.diag(jnp.where(m, 0.0, shift))
+        s = jnp.linalg.svd(Gs, compute_uv=False)
+        mu = s[-1]
+    else:
+        G = Jm @ Jm.T
+        shift = jnp.trace(G) + 1.0
+        Gs = G + jnp.diag(jnp.where(m, 0.0, shift))
+        if method == "laguerre":
+            mu = smallest_eigenvalue(Gs)
+        elif method == "eigvalsh":
+            mu = jnp.linalg.eigvalsh(Gs)[0]
+        else:
+            raise ValueError(f"damping_factor: method must be 'laguerre', 'eigvalsh' or 'svd', got {method!r}")
+    pos = mu > 0
+    sigma = jnp.where(pos, jnp.sqrt(jnp.where(pos, mu, 1.0)), 0.0)
+    return jnp.maximum(ratio * sigma, floor)
+
+
+def damped_solve(J: Float[Array, "k n"], B: Float[Array, "k r"], lam) -> Float[Array, "n r"]:
+    """``J^T (J J^T + lam^2 I)^-1 B`` by an unrolled ``k x k`` Cholesky (3.29 applied to ``B``)."""
+    k = J.shape[0]
+    Y = J @ J.T + (lam * lam) * jnp.eye(k, dtype=J.dtype)
+    L, inv_diag = _cholesky_rows(Y, _pivot_floor(Y))
+    return J.T @ _cho_solve_rows(L, inv_diag, B)
+
+
+def damped_pinv(J: Float[Array, "k n"], ratio=0.1, floor=0.01, *, row_mask=None,
+                method: str = "laguerre") -> tuple[Float[Array, "n k"], Float[Array, ""]]:
+    """Adaptive damped pseudo-inverse ``J# = J^T (J J^T + lam^2 I)^-1`` (3.29, 3.32) and ``lam``.
+
+    Arguments:
+        J: task Jacobian ``(k, n)``.
+        ratio, floor: ``lam = max(ratio sigma_min, floor)`` (0.1, 0.01 [T]); ``floor = ratio = 0``
+            gives the undamped Moore-Penrose inverse of a full-row-rank ``J``.
+        row_mask: ``(k,)`` bool, active task rows (inactive rows are zeroed; their columns of ``J#``
+            are zero). None: all rows.
+        method: how ``sigma_min`` is found (see :func:`damping_factor`).
+
+    Returns:
+        ``(J#, lam)`` with ``J#`` of shape ``(n, k)``.
+    """
+    if J.ndim != 2:
+        raise ValueError(f"damped_pinv: J must be 2-D (k, n), got shape {J.shape}")
+    m = _row_mask(J.shape[0], row_mask, J.dtype)
+    Jm = jnp.where(m[:, None], J, 0.0)
+    lam = damping_factor(Jm, ratio, floor, row_mask=m, method=method)
+    Jp = damped_solve(Jm, jnp.eye(J.shape[0], dtype=J.dtype), lam)
+    return Jp, lam
+
+
+def nullspace_projector(J: Float[Array, "k n"], J_pinv: Float[Array, "n k"]) -> Float[Array, "n n"]:
+    """Orthogonal null-space projector ``N = I - J# J`` (2.32 / 3.30)."""
+    n = J.shape[1]
+    return jnp.eye(n, dtype=J.dtype) - J_pinv @ J
+
+
+def oblique_projector(J: Float[Array, "k n"], W: Float[Array, "n n"], level: str = "torque"
+                      ) -> Float[Array, "n n"]:
+    """Weighted (oblique) null-space projector (2.36 corrected, E11).
+
+    * ``level="torque"``: ``P_tau = I - J^T (J W^-1 J^T)^-1 J W^-1``; ``P_tau J^T = 0`` and
+      ``J W^-1 P_tau = 0`` (with ``W = M``: projected torques cause no end-effector acceleration).
+    * ``level="velocity"`` (or ``"acceleration"``): ``P_v = I - W^-1 J^T (J W^-1 J^T)^-1 J``,
+      ``J P_v = 0`` (the ``W``-weighted minimum-norm projector; ``P_v = P_tau^T``).
+
+    ``W`` must be symmetric positive definite (a Cholesky factorisation is used).
+    """
+    n = J.shape[1]
+    cf = jax.scipy.linalg.cho_factor(W, lower=True)
+    WiJt = jax.scipy.linalg.cho_solve(cf, J.T)  # W^-1 J^T (n, k)
+    A = J @ WiJt  # J W^-1 J^T (k, k)
+    ca = jax.scipy.linalg.cho_factor(A, lower=True)
+    eye = jnp.eye(n, dtype=J.dtype)
+    if level == "torque":
+        # J^T A^-1 J W^-1 = J^T A^-1 (W^-1 J^T)^T
+        return eye - J.T @ jax.scipy.linalg.cho_solve(ca, WiJt.T)
+    if level in ("velocity", "acceleration"):
+        return eye - WiJt @ jax.scipy.linalg.cho_solve(ca, J)
+    raise ValueError(f"oblique_projector: level must be 'torque', 'velocity' or 'acceleration', got {level!r}")
+
+
+def task_priority(J1: Float[Array, "k1 n"], x1: Float[Array, " k1"], J2: Float[Array, "k2 n"],
+                  x2: Float[Array, " k2"], ratio=0.0, floor=0.0, *, method: str = "laguerre"
+                  ) -> Float[Array, " n"]:
+    """Two-level task-priority resolution (2.5.3, SPEC section 7):
+    ``q_d = J1# x1 + (J2 N1)# (x2 - J2 J1# x1)`` with ``N1 = I - J1# J1``.
+
+    The secondary task acts only in the null space of the first: ``J1 q_d = x1`` exactly for
+    undamped inverses (``ratio = floor = 0``) whatever ``x2``. Pseudo-inverses are the damped
+    ones of :func:`damped_pinv` with the given ``ratio``/``floor``. (Not used by the thesis's
+    controllers, which sum the policies, 3.33.)
+    """
+    J1p, _ = damped_pinv(J1, ratio, floor, method=method)
+    q1 = J1p @ x1
+    N1 = nullspace_projector(J1, J1p)
+    J2N1 = J2 @ N1
+    # (J2 N1)# may be rank deficient in general; a tiny floor keeps it finite.
+    tiny = jnp.maximum(floor, 1e-9)
+    J2p, _ = damped_pinv(J2N1, ratio, tiny, method=method)
+    return q1 + J2p @ (x2 - J2 @ q1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Policies
+# ----------------------------------------------------------------------------------------------
+
+
+def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minus") -> Float[Array, "m 3"]:
+    """``sum_o grad V_o(x)`` at every point, ``(m, 3)``: one fused, vmapped evaluation of
+    :func:`redman_jax._fields.obstacle_field_gradient` over all points and all obstacles."""
+    from ._fields import obstacle_field_gradient
+
+    return jax.vmap(lambda x: obstacle_field_gradient(obs, x, a, D, form=form))(points)
+
+
+def _link_midpoint_jacobians(arm: Arm, kin: Kinematics, pois) -> tuple:
+    """Segment midpoints ``(n, 3)`` and rigid link Jacobians (position part) there ``(n, 3, n)``."""
+    n, P = arm.n_dof, arm.points_per_link
+    X = pois.reshape(n, P, 3)
+    end = X[:, -1]
+    if P > 1:
+        start = (P * X[:, 0] - end) / (P - 1)  # poi_k = start + (k / P)(end - start)
+    else:
+        start = kin.frames[:, :3, 3]
+    mid = 0.5 * (start + end)
+    S = kin.S
+    cols = S[None, :, 3:] + jnp.cross(S[None, :, :3], mid[:, None, :])  # (link, joint, 3)
+    mask = (jnp.arange(n)[None, :] <= jnp.arange(n)[:, None]).astype(S.dtype)
+    return mid, jnp.swapaxes(cols * mask[:, :, None], 1, 2)
+
+
+def obstacle_policy(arm: Arm, kin: Kinematics, q, obs, gain, a, D, mode: str = "point", *,
+                    pois=None, poi_jac=None, form: str = "minus") -> Float[Array, " n"]:
+    """Obstacle-avoidance policy (3.34 corrected, E9):
+    ``q_dd_obs = sum_{i,k} J_{poi,i,k}^T (-gamma sum_o grad V_o(x_{poi,i,k}))``.
+
+    Arguments:
+        arm, kin, q: the arm, its shared forward-kinematics pass and configuration.
+        obs: :class:`~redman_jax.ObstacleSet`.
+        gain: ``gamma`` (1000 acceleration domain, 10 velocity domain); a, D: potential amplitude and
+            range (0.05, 0.75 m).
+        mode: ``"point"`` (default: each point's own 3 x n Jacobian, exact on a telescoping prismatic
+            segment) or ``"link"`` (the thesis: the forces of a link's points summed and applied
+            through one rigid link Jacobian at the segment midpoint; moments ignored).
+        pois, poi_jac: precomputed point positions / Jacobians (else computed from ``kin``).
+        form: obstacle potential form (``"minus"``, SPEC E4).
+    """
+    if pois is None:
+        pois = poi_positions_from(arm, kin, q)
+    f = -gain * obstacle_gradients(obs, pois, a, D, form)  # (m, 3) forces
+    if mode == "point":
+        if poi_jac is None:
+            poi_jac = poi_jacobians_from(arm, kin, pois)
+        return jnp.einsum("mjn,mj->n", poi_jac, f)
+    if mode == "link":
+        _, Jl = _link_midpoint_jacobians(arm, kin, pois)
+        F = f.reshape(arm.n_dof, arm.points_per_link, 3).sum(1)
+        return jnp.einsum("ljn,lj->n", Jl, F)
+    raise ValueError(f"obstacle_policy: mode must be 'point' or 'link', got {mode!r}")
+
+
+def joint_limit_policy(arm: Arm, q: Float[Array, " n"], a, outside) -> Float[Array, " n"]:
+    """Joint-limit avoidance (3.35, exact simplification E12):
+    ``-a u / (h^2 - u^2)^(3/2)`` for ``|u| < h`` and ``-sign(u) * outside`` beyond the limits,
+    with ``u = q - (q_min + q_max)/2`` and ``h = (q_max - q_min)/2``; zero for unlimited joints.
+    It equals ``-d/dq [a (h^2 - u^2)^(-1/2)]`` and always pushes inward. NaN-free gradients (double
+    ``where``).
+    """
+    q_mid = 0.5 * (arm.q_min + arm.q_max)
+    h = 0.5 * (arm.q_max - arm.q_min)
+    u = q - q_mid
+    inside = jnp.abs(u) < h
+    den = jnp.where(inside, h * h - u * u, 1.0)
+    val = jnp.where(inside, -a * u / (den * jnp.sqrt(den)), -jnp.sign(u) * outside)
+    return jnp.where(arm.limited, val, 0.0)
+
+
+def damping_policy(qd: Float[Array, " n"], gain) -> Float[Array, " n"]:
+    """Null-space damping (3.36): ``-G_d q_d``."""
+    return -gain * qd
+
+
+def nullspace_policy(arm: Arm, kin: Kinematics, q, qd, obs, gains: PolicyGains, mode: str = "point",
+                     *, pois=None, poi_jac=None, form: str = "minus") -> Float[Array, " n"]:
+    """The summed policy ``h`` of 3.33: obstacles + joint limits + damping (``gains`` selects the
+    acceleration- or velocity-domain variant; ``qd`` may be zeros for the velocity domain)."""
+    h_obs = obstacle_policy(arm, kin, q, obs, gains.gamma, gains.obs_a, gains.obs_D, mode,
+                            pois=pois, poi_jac=poi_jac, form=form)
+    return h_obs + joint_limit_policy(arm, q, gains.jl_a, gains.jl_outside) + damping_policy(qd, gains.damping)
