@@ -1,0 +1,231 @@
+"""Local-minima estimator, virtual-obstacle buffer and the "perfect controller" gradient-descent ODE
+(thesis 2.8.1, 3.3.3, 3.4; SPEC section 9, E13-E15, E22, U4, U8, U26).
+
+**Estimator (3.24 with E22, U8).** At the start of every sample the end-effector position ``x``
+gives one Newton step on the total field ``V = V_g + sum V_o + sum V_v`` (3.22, with the *current*
+buffer of virtual obstacles):
+
+``x_min = x - (H(x) + mu I)^-1 g(x)``,  ``mu = 1e-6``,
+
+skipped when non-finite or ``|x_min - x| > 2 m``. Far from obstacles ``H = 2 I`` and the step lands
+exactly on the goal (the goal attractor is quadratic, E13), where a virtual obstacle has zero
+amplitude (``A = 0.1 |x - x_g|^2``, E15/U4). Every accepted estimate is pushed into a FIFO ring
+buffer of the last 20 (3.25-3.27), whose members are the virtual obstacles of the field for the
+whole next sample (discrete-time update; the gradient itself is evaluated continuously).
+
+**Perfect controller (3.18).** ``x_dot = x_dot_g(x; buffer) = -a tanh(|x - x_g|/b) g/|g|``
+(``a = 0.5 m/s``, ``b = 0.1 m``), the end effector as a point that follows the guidance velocity
+exactly, with the same estimator and the same termination (goal within 10 cm held for 1 s, or
+6 s). Used to tune the estimator and for Figure 3.7.
+
+Everything has fixed shapes (600 samples, 20 slots, masks), so it jits and vmaps over scenes.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import diffrax
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
+from ._math import safe_norm
+from ._metrics import GuidanceTermination, guidance_termination, path_length
+from ._obstacles import ObstacleSet
+
+__all__ = [
+    "VirtualBuffer",
+    "estimate_local_minimum",
+    "estimator_update",
+    "field_params_or_default",
+    "PerfectParams",
+    "PerfectResult",
+    "perfect_controller",
+    "perfect_controller_batch",
+]
+
+
+class VirtualBuffer(eqx.Module):
+    """FIFO ring buffer of virtual obstacles: positions ``p`` ``(B, 3)``, active ``mask`` ``(B,)``
+    and the slot ``head`` the next estimate overwrites (the oldest one once the buffer is full)."""
+
+    p: Float[Array, "B 3"]
+    mask: Bool[Array, " B"]
+    head: Int[Array, ""]
+
+    @staticmethod
+    def empty(size: int = 20, dtype=None) -> "VirtualBuffer":
+        dtype = jnp.zeros(()).dtype if dtype is None else dtype
+        return VirtualBuffer(p=jnp.zeros((size, 3), dtype), mask=jnp.zeros((size,), bool),
+                             head=jnp.zeros((), jnp.int32))
+
+    def push(self, x: Float[Array, "3"], valid: Bool[Array, ""]) -> "VirtualBuffer":
+        """Write ``x`` into slot ``head`` if ``valid`` (else leave the buffer unchanged)."""
+        B = self.p.shape[0]
+        p = jnp.where(valid, self.p.at[self.head].set(x), self.p)
+        mask = jnp.where(valid, self.mask.at[self.head].set(True), self.mask)
+        head = jnp.where(valid, (self.head + 1) % B, self.head).astype(jnp.int32)
+        return VirtualBuffer(p=p, mask=mask, head=head)
+
+
+def field_params_or_default(field, gains=None) -> FieldParams:
+    """The guidance field parameters: ``field`` if given, else ``gains.field`` if the controller's
+    gains carry one, else the thesis defaults."""
+    if field is not None:
+        return field
+    g_field = getattr(gains, "field", None)
+    if isinstance(g_field, FieldParams):
+        return g_field
+    return FieldParams()
+
+
+def estimate_local_minimum(x: Float[Array, "3"], goal_p: Float[Array, "3"], obs: ObstacleSet,
+                           virtual_p: Float[Array, "B 3"], virtual_mask: Bool[Array, " B"],
+                           params: FieldParams, mu=1e-6, max_jump=2.0):
+    """One regularised Newton step on the total field (3.24, E22, U8).
+
+    ``x_min = x - (H + mu I)^-1 g`` with ``g``, ``H`` the gradient and Hessian of the total field
+    (goal, obstacles and the current virtual obstacles) at ``x``. Returns ``(x_min, valid)``;
+    ``valid`` is False when ``x_min`` is non-finite or ``|x_min - x| > max_jump``.
+    """
+    g = total_gradient(x, goal_p, obs, virtual_p, virtual_mask, params)
+    H = total_hessian(x, goal_p, obs, virtual_p, virtual_mask, params)
+    eye = jnp.eye(3, dtype=H.dtype)
+    step = jnp.linalg.solve(H + mu * eye, g)
+    x_min = x - step
+    valid = jnp.all(jnp.isfinite(x_min)) & (safe_norm(x_min - x) <= max_jump)
+    x_min = jnp.where(jnp.isfinite(x_min), x_min, x)
+    return x_min, valid
+
+
+def estimator_update(x, goal_p, obs, buf: VirtualBuffer, params: FieldParams, mu=1e-6, max_jump=2.0):
+    """Estimate at ``x`` with the current buffer and push the estimate if valid.
+
+    Returns ``(new_buffer, x_min, valid)``."""
+    x_min, valid = estimate_local_minimum(x, goal_p, obs, buf.p, buf.mask, params, mu, max_jump)
+    return buf.push(x_min, valid), x_min, valid
+
+
+# --------------------------------------------------------------------------------------------
+# perfect controller
+
+
+def _arr(x):
+    return jnp.asarray(x)
+
+
+class PerfectParams(eqx.Module):
+    """Options of the perfect-controller ODE. Arrays: guidance speed ``a`` [m/s] and slow-down
+    distance ``b`` [m] (3.18, [T] 0.5 / 0.1), ``ts`` [s], estimator ``mu`` and ``max_jump`` [m]
+    (U8), success ``radius`` [m], tolerances ``rtol``/``atol``; ``field``: :class:`FieldParams`.
+    Static: ``n_samples`` (600 = 6 s), ``hold_samples`` (100 = 1 s), ``buffer_size`` (20),
+    ``estimator`` (False gives plain gradient descent, for comparison) and
+    ``max_steps_per_sample``."""
+
+    a: Float[Array, ""] = eqx.field(default=0.5, converter=_arr)
+    b: Float[Array, ""] = eqx.field(default=0.1, converter=_arr)
+    ts: Float[Array, ""] = eqx.field(default=0.01, converter=_arr)
+    mu: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
+    max_jump: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
+    radius: Float[Array, ""] = eqx.field(default=0.10, converter=_arr)
+    rtol: Float[Array, ""] = eqx.field(default=1e-5, converter=_arr)
+    atol: Float[Array, ""] = eqx.field(default=1e-7, converter=_arr)
+    field: FieldParams = eqx.field(default_factory=FieldParams)
+    n_samples: int = eqx.field(static=True, default=600)
+    hold_samples: int = eqx.field(static=True, default=100)
+    buffer_size: int = eqx.field(static=True, default=20)
+    estimator: bool = eqx.field(static=True, default=True)
+    max_steps_per_sample: int = eqx.field(static=True, default=64)
+
+
+class PerfectResult(eqx.Module):
+    """Perfect-controller run: ``x`` ``(N, 3)`` positions at the sample ends, ``estimates``
+    ``(N, 3)`` and ``estimate_valid`` ``(N,)`` (made at each sample start; every one is kept for
+    Figure 3.7), ``buffers`` ``(N, B, 3)`` / ``buffer_masks`` ``(N, B)`` (the virtual obstacles
+    active during each sample), ``goal_err`` ``(N,)``, ``termination``
+    (:class:`~redman_jax._metrics.GuidanceTermination`), ``path_length`` [m] up to the stop,
+    ``min_dist`` ``(N,)`` (signed distance of ``x`` to the closest obstacle), ``n_steps``."""
+
+    x: Float[Array, "N 3"]
+    estimates: Float[Array, "N 3"]
+    estimate_valid: Bool[Array, " N"]
+    buffers: Float[Array, "N B 3"]
+    buffer_masks: Bool[Array, "N B"]
+    goal_err: Float[Array, " N"]
+    termination: GuidanceTermination
+    path_length: Float[Array, ""]
+    min_dist: Float[Array, " N"]
+    n_steps: Int[Array, ""]
+
+    @property
+    def success(self):
+        return self.termination.success
+
+
+def _perfect_core(x0, goal_p, obs, params: PerfectParams) -> PerfectResult:
+    from ._obstacles import min_distance
+
+    dtype = x0.dtype
+    ts = params.ts.astype(dtype)
+    buf0 = VirtualBuffer.empty(params.buffer_size, dtype)
+    fp = params.field
+
+    def vf(t, x, buf):
+        return guidance_velocity(x, goal_p, obs, buf.p, buf.mask, fp, params.a, params.b)
+
+    term = diffrax.ODETerm(vf)
+    solver = diffrax.Tsit5()
+    pid = diffrax.PIDController(rtol=params.rtol, atol=params.atol)
+
+    def body(carry, k):
+        x, buf, dt0 = carry
+        if params.estimator:
+            buf, x_min, valid = estimator_update(x, goal_p, obs, buf, fp, params.mu, params.max_jump)
+        else:
+            x_min, valid = x, jnp.asarray(False)
+        t0 = ts * k.astype(dtype)
+        sol = diffrax.diffeqsolve(term, solver, t0, t0 + ts, dt0, x, args=buf,
+                                  saveat=diffrax.SaveAt(t1=True), stepsize_controller=pid,
+                                  max_steps=params.max_steps_per_sample, throw=False)
+        x1 = sol.ys[-1]
+        acc = sol.stats["num_accepted_steps"]
+        dt_next = jnp.minimum(ts / jnp.maximum(acc, 1).astype(dtype), ts)
+        return (x1, buf, dt_next), (x1, x_min, valid, buf.p, buf.mask, sol.stats["num_steps"])
+
+    _, (xs, est, ok, bp, bm, nsteps) = jax.lax.scan(body, (x0, buf0, ts), jnp.arange(params.n_samples))
+    goal_err = safe_norm(xs - goal_p, axis=-1)
+    dmin = jax.vmap(lambda x: min_distance(obs, x))(xs)
+    term = guidance_termination(goal_err, ts, False, hold_samples=params.hold_samples, radius=params.radius)
+    return PerfectResult(x=xs, estimates=est, estimate_valid=ok, buffers=bp, buffer_masks=bm,
+                         goal_err=goal_err, termination=term,
+                         path_length=path_length(x0, xs, term.mask), min_dist=dmin,
+                         n_steps=jnp.sum(nsteps).astype(jnp.int32))
+
+
+_perfect_jit = eqx.filter_jit(_perfect_core)
+
+
+def perfect_controller(x0, goal_p, obs: ObstacleSet, params: PerfectParams | None = None) -> PerfectResult:
+    """Gradient descent of a point ``x`` on the guided field with the local-minima estimator
+    ("perfect controller", thesis 3.4, eq. 3.18), over ``params.n_samples`` samples of ``ts``.
+
+    **Arguments**: start ``x0`` ``(3,)`` (the end-effector start), ``goal_p`` ``(3,)``, obstacles,
+    :class:`PerfectParams`. **Returns** :class:`PerfectResult` (jit-compiled; vmaps, see
+    :func:`perfect_controller_batch`). **Raises** ``ValueError`` for wrongly shaped points.
+    """
+    params = PerfectParams() if params is None else params
+    x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
+    if x0.shape != (3,):
+        raise ValueError(f"x0: expected shape (3,), got {x0.shape}")
+    if goal_p.shape != (3,):
+        raise ValueError(f"goal_p: expected shape (3,), got {goal_p.shape}")
+    return _perfect_jit(x0, goal_p.astype(x0.dtype), obs, params)
+
+
+@eqx.filter_jit
+def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams | None = None) -> PerfectResult:
+    """:func:`perfect_controller` over a batch of scenes: ``x0``, ``goal_p`` ``(S, 3)`` and stacked
+    obstacle sets."""
+    params = PerfectParams() if params is None else params
+    return jax.vmap(_perfect_core, in_axes=(0, 0, 0, None))(x0, goal_p, obs, params)
