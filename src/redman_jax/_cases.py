@@ -458,16 +458,21 @@ class _ArmInfo:
     L_h: float
 
 
+@eqx.filter_jit
+def _q0_geometry(arm: Arm):
+    p, quat = end_effector_pose(arm, arm.q0)
+    return p, quat, poi_positions(arm, arm.q0), forward_kinematics(arm, arm.q0)
+
+
 def _arm_info(arm: Arm) -> _ArmInfo:
     if not isinstance(arm, Arm):
         raise ValueError(f"arm: expected an Arm, got {type(arm).__name__}")
-    q0 = arm.q0
-    p, quat = end_effector_pose(arm, q0)
+    p, quat, pois, frames = _q0_geometry(arm)
     p = np.asarray(p, float)
-    pois = np.asarray(poi_positions(arm, q0), float)
+    pois = np.asarray(pois, float)
     top = float(p[2])
     axis = np.stack([np.zeros(200), np.zeros(200), np.linspace(0.0, top, 200)], -1)
-    frames = np.asarray(forward_kinematics(arm, q0), float)
+    frames = np.asarray(frames, float)
     screws = np.asarray(arm.screw_axes, float)
     # Pivot: the first revolute joint with a horizontal axis (J3 of the thesis arms).
     pivot = next((i for i, pri in enumerate(arm.prismatic)
