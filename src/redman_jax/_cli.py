@@ -1,0 +1,132 @@
+"""Command line: ``redman-jax {study,sweep,plot,tune,demo}`` (also ``python -m redman_jax``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["main", "build_parser", "parse_int_list", "parse_name_list"]
+
+DEFAULT_CONTROLLERS = ("joint_space", "velocity", "acceleration", "gradient")
+
+
+class CLIError(ValueError):
+    pass
+
+
+def parse_int_list(text: str, name: str) -> tuple[int, ...]:
+    """Parse ``"1-20"``, ``"1,3,5"`` or ``"1-5,9"`` into a tuple of ints (``name`` for messages)."""
+    out: list[int] = []
+    try:
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            if "-" in part[1:]:
+                a, b = part.split("-", 1) if not part.startswith("-") else (part, None)
+                a, b = int(a), int(b)
+                if b < a:
+                    raise CLIError(f"--{name}: empty range {part!r}")
+                out.extend(range(a, b + 1))
+            else:
+                out.append(int(part))
+    except ValueError as e:
+        if isinstance(e, CLIError):
+            raise
+        raise CLIError(f"--{name}: cannot parse {text!r} (expected e.g. 1-20 or 1,3,5)") from None
+    if not out:
+        raise CLIError(f"--{name}: no values in {text!r}")
+    return tuple(dict.fromkeys(out))
+
+
+def parse_name_list(text: str, name: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+    items = tuple(dict.fromkeys(s.strip() for s in text.split(",") if s.strip()))
+    bad = [s for s in items if s not in allowed]
+    if bad:
+        raise CLIError(f"--{name}: unknown value(s) {bad}; choose from {list(allowed)}")
+    if not items:
+        raise CLIError(f"--{name}: empty")
+    return items
+
+
+def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
+    p.add_argument("--out", default="results", help="output folder (resumable; default: results)")
+    if not study:
+        p.add_argument("--arms", default="7,8,9",
+                       help="thesis arms by DOF (7,8,9) and/or URDF arms as urdf:PATH:TIP_LINK (default 7,8,9)")
+        p.add_argument("--cases", default="agriculture,warehouse,inspection,welding,simple",
+                       help="cases to run (default: all five)")
+        p.add_argument("--seeds", default="1-20", help="seeds, e.g. 1-20 or 1,4,7 (default 1-20)")
+        p.add_argument("--controllers", default=",".join(DEFAULT_CONTROLLERS),
+                       help="controllers: joint_space, velocity, acceleration, gradient, and the optional "
+                            "pid, velocity_original, impedance (default: the four of the thesis)")
+        p.add_argument("--gains", default=None,
+                       help="JSON file of gain overrides {controller: {gain: value}} (e.g. from `tune`)")
+        p.add_argument("--ts", type=float, default=0.01, help="sample time in seconds (default 0.01)")
+    p.add_argument("--max-retries", type=int, default=20,
+                   help="IK-validation retries per seed (seed + 1000 k; default 20)")
+    p.add_argument("--no-figures", action="store_true", help="skip figures and report")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="redman-jax",
+        description="Joint-space vs operational-space control of redundant arms among obstacles "
+                    "(a JAX reproduction of the thesis study). Without a subcommand: `study`.",
+    )
+    sub = parser.add_subparsers(dest="command")
+    p = sub.add_parser("study", help="the whole thesis study: 3 arms x 5 cases x 20 seeds, all controllers")
+    _add_sweep_options(p, study=True)
+    p.add_argument("--seeds", default="1-20", help="seeds (default 1-20; fewer for a quick look)")
+    p = sub.add_parser("sweep", help="any subset of the study (arms, cases, seeds, controllers, gains, ts)")
+    _add_sweep_options(p, study=False)
+    p = sub.add_parser("plot", help="figures and report.md from an existing results folder")
+    p.add_argument("--out", default="results", help="results folder (default: results)")
+    p = sub.add_parser("tune", help="auto-tune controller gains to equal settling time")
+    p.add_argument("--arm", default="9", help="thesis arm DOF (default 9)")
+    p.add_argument("--controllers", default="velocity,acceleration",
+                   help="controllers to tune (default velocity,acceleration; the target is joint_space)")
+    p.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
+    p.add_argument("--out", default="tuned", help="output folder (default: tuned)")
+    p = sub.add_parser("demo", help="one scenario end to end: plotted and animated")
+    p.add_argument("--arm", default="9", help="thesis arm DOF (default 9)")
+    p.add_argument("--case", default="simple", help="case (default simple)")
+    p.add_argument("--seed", type=int, default=1, help="seed (default 1)")
+    p.add_argument("--controller", default="velocity", help="controller (default velocity)")
+    p.add_argument("--out", default="demo", help="output folder (default: demo)")
+    p.add_argument("--no-animation", action="store_true", help="skip the GIF")
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    command = args.command or "study"
+    if args.command is None:
+        args = parser.parse_args(["study", *(argv or sys.argv[1:])])
+    try:
+        if command in ("study", "sweep"):
+            from ._study import SweepConfig, run_sweep
+
+            cfg = SweepConfig.from_args(args, study=(command == "study"))
+            run_sweep(cfg)
+        elif command == "plot":
+            from ._report import make_report
+
+            make_report(args.out)
+        elif command == "tune":
+            from ._tuning import tune_cli
+
+            tune_cli(args)
+        elif command == "demo":
+            from ._demo import demo_cli
+
+            demo_cli(args)
+    except CLIError as e:
+        print(f"redman-jax {command}: error: {e}", file=sys.stderr)
+        return 2
+    except ValueError as e:
+        print(f"redman-jax {command}: error: {e}", file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,238 @@
+"""The two units of work of a sweep (thesis Fig. 3.10): build a case, run a controller on it.
+
+:func:`build_case` generates, plans and IK-validates the scenarios of every requested seed of one
+(arm, case) at once; :func:`run_controller` simulates one controller on all of them at once and
+turns the results into table rows and per-sample traces. Both return plain dicts of NumPy arrays
+(what :class:`~redman_jax._store.UnitStore` pickles).
+
+Timing (thesis 3.5, SPEC section 10): planning and IK are measured as the warm wall time of one
+batched call divided by the number of samples it produced; the controller as the mean of jitted
+single evaluations (``controller_time_per_sample``); the local-minima estimator likewise per
+update. Compile time is measured apart and reported in ``timings``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["build_case", "run_controller", "make_gains", "shard_batch"]
+
+
+def _block(tree):
+    return jax.block_until_ready(tree)
+
+
+def _take(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def shard_batch(tree):
+    """Place a batch (leading axis) across every JAX device with a 1-D mesh.
+
+    The batch is split along its leading axis (``NamedSharding(mesh, P("batch"))``); with one device
+    this is a no-op. Callers pad the batch to a multiple of the device count first
+    (:func:`_pad_batch`). Under ``jit`` the computation then runs data-parallel on all devices.
+    """
+    devices = jax.devices()
+    if len(devices) == 1:
+        return tree
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+    mesh = Mesh(np.array(devices), ("batch",))
+
+    def put(x):
+        if not hasattr(x, "ndim") or x.ndim == 0:
+            return x
+        spec = P("batch", *([None] * (x.ndim - 1)))
+        return jax.device_put(x, NamedSharding(mesh, spec))
+
+    return jax.tree.map(put, tree)
+
+
+def _pad_batch(tree, multiple: int):
+    """Pad the leading axis to a multiple of ``multiple`` by repeating the last member."""
+    leaves = jax.tree.leaves(tree)
+    if not leaves:
+        return tree, 0
+    R = leaves[0].shape[0]
+    extra = (-R) % multiple
+    if extra == 0:
+        return tree, R
+
+    def pad(x):
+        if not hasattr(x, "ndim") or x.ndim == 0:
+            return x
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+
+    return jax.tree.map(pad, tree), R
+
+
+def build_case(arm, case: str, seeds, *, ts: float = 0.01, max_retries: int = 20) -> dict:
+    """Scenarios, IK trajectories and timings of one (arm, case) for every seed (batched)."""
+    from ._cases import CaseParams, make_scenarios
+    from ._ik import IKParams, ik_trajectory, validated_scenarios
+
+    seeds = [int(s) for s in seeds]
+    case_params = CaseParams(ts=ts)
+    t0 = time.perf_counter()
+    scen, ik = validated_scenarios(case, seeds, arm, max_retries, IKParams(), case_params=case_params)
+    _block((scen, ik))
+    t_build = time.perf_counter() - t0
+    n_samples = np.asarray(scen.reference.n_samples)
+    total = float(n_samples.sum())
+    # Warm re-timing of the final seeds (compiled by now): the per-sample cost the thesis reports.
+    used = [int(s) for s in np.asarray(scen.seed_used)]
+    t0 = time.perf_counter()
+    again = make_scenarios(case, used, arm, params=case_params, max_retries=0)
+    _block(again)
+    t_plan = time.perf_counter() - t0
+    ik_fn = eqx.filter_jit(lambda a, s: ik_trajectory(a, s, IKParams()))
+    _block(ik_fn(arm, scen))
+    t0 = time.perf_counter()
+    _block(ik_fn(arm, scen))
+    t_ik = time.perf_counter() - t0
+    return {
+        "scenarios": scen,
+        "ik": ik,
+        "timings": {
+            "build_s": t_build,
+            "planning_s": t_plan,
+            "ik_s": t_ik,
+            "t_planning_per_sample": t_plan / max(total, 1.0),
+            "t_ik_per_sample": t_ik / max(total, 1.0),
+            "total_samples": total,
+        },
+    }
+
+
+def make_gains(controller, overrides: dict | None):
+    """The controller's default gains with ``{field: value}`` overrides (arrays; unknown -> ValueError)."""
+    gains = controller.default_gains()
+    if not overrides:
+        return gains
+    for name, value in overrides.items():
+        if not hasattr(gains, name):
+            fields = [f for f in getattr(gains, "__dataclass_fields__", {})]
+            raise ValueError(f"gains: {type(gains).__name__} has no field {name!r} (fields: {fields})")
+        old = getattr(gains, name)
+        new = jnp.asarray(value, dtype=jnp.asarray(old).dtype)
+        if new.shape != jnp.shape(old):
+            raise ValueError(f"gains.{name}: expected shape {jnp.shape(old)}, got {new.shape}")
+        gains = eqx.tree_at(lambda g: getattr(g, name), gains, new)
+    return gains
+
+
+def _sample_inputs(arm, scen, controller, gains):
+    """A representative (state, reference, environment) for timing one control-law evaluation."""
+    from ._control_types import ControlState, RefSample, make_environment
+
+    s = _take(scen, 0)
+    ref = s.reference
+    k = int(np.asarray(ref.n_samples)) // 2
+    n = arm.n_dof
+    q = jnp.asarray(arm.q0)
+    state = ControlState(t=jnp.asarray(0.0), q=q, qd=jnp.zeros(n), z=controller.init_state(arm, q, jnp.zeros(n)))
+    rs = RefSample(p=ref.p[k], v=ref.v[k], a=ref.a[k], quat=ref.quat[k], omega=ref.omega[k],
+                   omega_dot=ref.omega_dot[k], rot=ref.rot[k], q=q, qd=jnp.zeros(n), qdd=jnp.zeros(n))
+    env = make_environment(s.obstacles, s.goal_p, s.goal_quat)
+    return state, rs, env
+
+
+def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict | None = None,
+                   *, sim_params=None, n_timing_calls: int = 300) -> dict:
+    """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table."""
+    from ._controllers import CONTROLLERS
+    from ._metrics import controller_time_per_sample
+    from ._sim import SimParams, simulate_batch
+
+    controller = CONTROLLERS[ctrl_name]()
+    gains = make_gains(controller, gain_overrides)
+    scen = jax.tree.map(jnp.asarray, scen_payload["scenarios"])
+    ik = jax.tree.map(jnp.asarray, scen_payload["ik"])
+    params = SimParams() if sim_params is None else sim_params
+    ndev = len(jax.devices())
+    scen_p, R = _pad_batch(scen, ndev)
+    ik_p, _ = _pad_batch(ik, ndev)
+    scen_p, ik_p = shard_batch(scen_p), shard_batch(ik_p)
+    ik_arg = ik_p if controller.needs_joint_reference else None
+    t0 = time.perf_counter()
+    res = _block(simulate_batch(arm, scen_p, controller, gains, ik=ik_arg, params=params))
+    t_sim = time.perf_counter() - t0
+    res = jax.tree.map(lambda x: np.asarray(x)[:R], res)
+    state, rs, env = _sample_inputs(arm, scen, controller, gains)
+    t_ctrl = controller_time_per_sample(controller, gains, arm, state, rs, env, n_calls=n_timing_calls)
+    t_lme = float("nan")
+    if controller.uses_guidance:
+        t_lme = _lme_time(scen, n_timing_calls)
+    timings = scen_payload["timings"]
+    rows = []
+    m = res.metrics
+    valid = np.asarray(scen_payload["scenarios"].valid)
+    for i in range(R):
+        gradient = controller.uses_guidance
+        rows.append({
+            "case": scen_payload["scenarios"].case,
+            "seed": int(np.asarray(scen_payload["scenarios"].seed)[i]),
+            "seed_used": int(np.asarray(scen_payload["scenarios"].seed_used)[i]),
+            "scenario_valid": bool(valid[i]),
+            "controller": ctrl_name,
+            "success": bool(m.success[i]),
+            "collided": bool(m.collided[i]),
+            "joint_limit_hit": bool(m.joint_limit[i]),
+            "reached": bool(m.final_pos_err[i] < 0.10),
+            "cause": int(m.cause[i]),
+            "final_pos_error": float(m.final_pos_err[i]),
+            "mean_pos_error": float(m.mean_pos_err[i]),
+            "mean_ori_error": float(m.mean_ori_err[i]),
+            "n_samples": int(res.n_samples[i]),
+            "t_controller_per_sample": t_ctrl,
+            "t_ik_per_sample": float("nan") if gradient or not controller.needs_joint_reference
+            else timings["t_ik_per_sample"],
+            "t_planning_per_sample": float("nan") if gradient else timings["t_planning_per_sample"],
+            "t_lme_per_sample": t_lme,
+            "min_distance": float(np.min(np.where(res.mask[i], res.min_dist[i], np.inf))),
+            "time_to_goal": float(res.time_to_goal[i]),
+            "path_length": float(res.path_length[i]),
+            "diverged": bool(res.diverged[i]),
+            "n_steps": int(res.n_steps[i]),
+            "sim_wall_s": t_sim / R,
+        })
+    ref = scen_payload["scenarios"].reference
+    traces = {
+        "seed": np.asarray(scen_payload["scenarios"].seed),
+        "t": np.asarray(res.t[0]),
+        "mask": res.mask,
+        "pos_err": res.pos_err,
+        "ori_err": res.ori_err,
+        "rot": res.rot,
+        "p": res.p.astype(np.float32),
+        "min_dist": res.min_dist.astype(np.float32),
+        "f_obs": res.f_obs,
+    }
+    if controller.uses_guidance:
+        traces["goal_err"] = res.pos_err
+        traces["estimates"] = res.estimates.astype(np.float32)
+        traces["estimate_valid"] = res.estimate_valid
+    else:
+        traces["p_d"] = np.asarray(ref.p).astype(np.float32)
+    return {"rows": rows, "traces": traces, "timings": {"sim_s": t_sim, "t_controller_per_sample": t_ctrl}}
+
+
+def _lme_time(scen, n_calls: int) -> float:
+    """Mean time of one local-minima-estimator update (Hessian of the total field + buffer push)."""
+    from ._fields import FieldParams
+    from ._guidance import VirtualBuffer, estimator_update
+    from ._metrics import time_per_call
+
+    s = _take(scen, 0)
+    buf = VirtualBuffer.empty(20, s.goal_p.dtype) if hasattr(VirtualBuffer, "empty") else None
+    if buf is None:
+        return float("nan")
+    x = s.reference.p[0]
+    return time_per_call(lambda xx: estimator_update(xx, s.goal_p, s.obstacles, buf, FieldParams()),
+                         x, n_calls=n_calls)

@@ -1,0 +1,255 @@
+"""The study: sweeps over arms x cases x seeds x controllers, resumable, with a tidy results table.
+
+Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
+
+1. generate the scenarios of all requested seeds and plan their trajectories (timed);
+2. run the IK on all of them at once and keep, per seed, the first valid one among
+   ``seed, seed + 1000, ...`` (timed);
+3. simulate every applicable controller on all seeds at once (one ``jit(vmap)`` per arm, case and
+   controller), the batch sharded over every JAX device;
+4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing).
+
+At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` hold one row per run, ``DIR/traces/`` the
+per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, and (unless
+``--no-figures``) ``DIR/figures/`` and ``DIR/report.md`` compare the numbers with the thesis.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._progress import Progress
+from ._scenario import CASES
+from ._store import UnitStore, atomic_write_bytes, atomic_write_text, config_hash
+
+__all__ = ["SweepConfig", "run_sweep", "load_runs", "RUN_COLUMNS", "GRADIENT_CASES", "arm_from_spec"]
+
+GRADIENT_CASES = ("agriculture", "warehouse", "simple")
+THESIS_CONTROLLERS = ("joint_space", "velocity", "acceleration", "gradient")
+
+RUN_COLUMNS = (
+    "arm", "case", "seed", "seed_used", "controller", "success", "collided", "joint_limit_hit",
+    "reached", "final_pos_error", "mean_pos_error", "mean_ori_error", "n_samples",
+    "t_controller_per_sample", "t_ik_per_sample", "t_planning_per_sample", "t_lme_per_sample",
+    "min_distance", "time_to_goal", "path_length", "diverged", "n_steps",
+)
+
+
+def arm_from_spec(spec: str):
+    """``"7"``/``"8"``/``"9"`` -> the thesis arm; ``"urdf:PATH:TIP"`` -> :func:`from_urdf`."""
+    from ._robot import thesis_arm
+
+    spec = str(spec).strip()
+    if spec.startswith("urdf:"):
+        from ._urdf import from_urdf
+
+        parts = spec.split(":")
+        if len(parts) != 3 or not parts[1] or not parts[2]:
+            raise ValueError(f"--arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
+        return from_urdf(parts[1], tip_link=parts[2])
+    try:
+        dof = int(spec)
+    except ValueError:
+        raise ValueError(f"--arms: {spec!r} is neither a thesis DOF (7, 8, 9) nor urdf:PATH:TIP") from None
+    return thesis_arm(dof)
+
+
+def _arm_label(spec: str) -> str:
+    if spec.startswith("urdf:"):
+        return Path(spec.split(":")[1]).stem + "-" + spec.split(":")[2]
+    return f"{spec}dof"
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """What a sweep runs. ``study`` is a sweep with the thesis defaults."""
+
+    out: str = "results"
+    arms: tuple[str, ...] = ("7", "8", "9")
+    cases: tuple[str, ...] = CASES
+    seeds: tuple[int, ...] = tuple(range(1, 21))
+    controllers: tuple[str, ...] = THESIS_CONTROLLERS
+    gradient_cases: tuple[str, ...] = GRADIENT_CASES
+    gains: dict | None = None
+    ts: float = 0.01
+    max_retries: int = 20
+    figures: bool = True
+    progress: bool = True
+
+    def __post_init__(self):
+        from ._controllers import CONTROLLERS
+
+        for c in self.cases:
+            if c not in CASES:
+                raise ValueError(f"cases: unknown case {c!r}; choose from {list(CASES)}")
+        for c in self.controllers:
+            if c not in CONTROLLERS:
+                raise ValueError(f"controllers: unknown controller {c!r}; choose from {sorted(CONTROLLERS)}")
+        if not self.seeds or any(int(s) < 0 for s in self.seeds):
+            raise ValueError(f"seeds: need non-negative integers, got {self.seeds}")
+        if not (0 < self.ts <= 0.1):
+            raise ValueError(f"ts: sample time must be in (0, 0.1] s, got {self.ts}")
+        if self.max_retries < 0:
+            raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
+        for a in self.arms:
+            if not (a.startswith("urdf:") or a in ("7", "8", "9")):
+                raise ValueError(f"arms: {a!r} is neither 7, 8, 9 nor urdf:PATH:TIP_LINK")
+        if self.gains is not None:
+            for ctrl, g in self.gains.items():
+                if ctrl not in CONTROLLERS or not isinstance(g, dict):
+                    raise ValueError(f"gains: expected {{controller: {{gain: value}}}}, got key {ctrl!r}")
+
+    @classmethod
+    def from_args(cls, args, *, study: bool) -> "SweepConfig":
+        from ._cli import parse_int_list, parse_name_list
+        from ._controllers import CONTROLLERS
+
+        seeds = parse_int_list(args.seeds, "seeds")
+        common = dict(out=args.out, seeds=seeds, max_retries=args.max_retries,
+                      figures=not args.no_figures, progress=not args.quiet)
+        if study:
+            return cls(**common)
+        arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
+        cases = parse_name_list(args.cases, "cases", CASES)
+        controllers = parse_name_list(args.controllers, "controllers", tuple(sorted(CONTROLLERS)))
+        gains = None
+        if args.gains:
+            try:
+                gains = json.loads(Path(args.gains).read_text())
+            except (OSError, json.JSONDecodeError) as e:
+                raise ValueError(f"--gains: cannot read {args.gains!r}: {e}") from None
+        return cls(arms=arms, cases=cases, controllers=controllers, gains=gains, ts=args.ts, **common)
+
+    def controllers_for(self, case: str) -> tuple[str, ...]:
+        return tuple(c for c in self.controllers if c != "gradient" or case in self.gradient_cases)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("progress")
+        d.pop("figures")
+        return d
+
+
+def _scenario_key(cfg: SweepConfig, arm: str, case: str) -> str:
+    return config_hash({"arm": arm, "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
+                        "max_retries": cfg.max_retries, "v": 1})
+
+
+def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
+    gains = (cfg.gains or {}).get(ctrl)
+    return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains, "v": 1})
+
+
+def run_sweep(cfg: SweepConfig) -> Path:
+    """Run (or resume) a sweep; returns the results folder."""
+    from . import _pipeline as pipe
+
+    out = Path(cfg.out)
+    store = UnitStore(out)
+    atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
+    units = []
+    for arm in cfg.arms:
+        for case in cfg.cases:
+            units.append(("scen", arm, case, None))
+            for ctrl in cfg.controllers_for(case):
+                units.append(("run", arm, case, ctrl))
+    progress = Progress(len(units), "units", enabled=cfg.progress)
+    arms = {}
+    for kind, arm_spec, case, ctrl in units:
+        label = _arm_label(arm_spec)
+        if kind == "scen":
+            name, key = f"scen_{label}_{case}", _scenario_key(cfg, arm_spec, case)
+        else:
+            name, key = f"run_{label}_{case}_{ctrl}", _run_key(cfg, arm_spec, case, ctrl)
+        if store.has(name, key):
+            progress.skip()
+            continue
+        if arm_spec not in arms:
+            arms[arm_spec] = arm_from_spec(arm_spec)
+        arm = arms[arm_spec]
+        t0 = time.perf_counter()
+        if kind == "scen":
+            payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
+        else:
+            scen = store.load(f"scen_{label}_{case}")
+            gains = (cfg.gains or {}).get(ctrl)
+            payload = pipe.run_controller(arm, scen, ctrl, gains)
+            payload["rows"] = [dict(r, arm=label) for r in payload["rows"]]
+        store.save(name, key, payload)
+        progress.advance(note=f"{name} ({time.perf_counter() - t0:.1f}s)")
+    rows = collect_rows(cfg, store)
+    write_table(out, rows)
+    if cfg.figures:
+        from ._report import make_report
+
+        make_report(out)
+    return out
+
+
+def collect_rows(cfg: SweepConfig, store: UnitStore) -> list[dict]:
+    rows = []
+    for arm_spec in cfg.arms:
+        label = _arm_label(arm_spec)
+        for case in cfg.cases:
+            for ctrl in cfg.controllers_for(case):
+                payload = store.load(f"run_{label}_{case}_{ctrl}")
+                rows.extend(payload["rows"])
+                traces = payload.get("traces")
+                if traces:
+                    buf = io.BytesIO()
+                    np.savez_compressed(buf, **traces)
+                    atomic_write_bytes(store.root / "traces" / f"{label}_{case}_{ctrl}.npz", buf.getvalue())
+    return rows
+
+
+def write_table(out: Path, rows: list[dict]) -> None:
+    """``runs.csv`` always; ``runs.parquet`` when pandas and pyarrow are installed (the io extra)."""
+    cols = list(RUN_COLUMNS) + sorted({k for r in rows for k in r} - set(RUN_COLUMNS))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: _plain(r.get(k)) for k in cols})
+    atomic_write_text(Path(out) / "runs.csv", buf.getvalue())
+    try:
+        import pandas as pd
+    except ImportError:
+        return
+    df = pd.DataFrame([{k: _plain(r.get(k)) for k in cols} for r in rows], columns=cols)
+    pbuf = io.BytesIO()
+    try:
+        df.to_parquet(pbuf, index=False)
+    except (ImportError, ValueError):
+        return
+    atomic_write_bytes(Path(out) / "runs.parquet", pbuf.getvalue())
+
+
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        return v.item()
+    return v
+
+
+def load_runs(out) -> list[dict]:
+    """Read ``DIR/runs.csv`` back as a list of dicts with numbers parsed."""
+    with open(Path(out) / "runs.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        for k, v in r.items():
+            if v in ("True", "False"):
+                r[k] = v == "True"
+            else:
+                try:
+                    r[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+                except (ValueError, AttributeError):
+                    pass
+    return rows
