@@ -38,7 +38,7 @@ def main(argv=None):
         sc = make_scenario(case, args.seed, arm)
         scenes[case] = sc
         ax = plot_scenario(sc, arm)
-        ax.legend(loc="upper left", fontsize=6, frameon=False)
+        ax.legend(loc="upper right", fontsize=6, frameon=False)
         path = out / f"case_{case}_seed{args.seed}_{args.dof}dof.png"
         ax.figure.savefig(path, dpi=150, bbox_inches="tight")
         plt.close(ax.figure)
