@@ -1097,28 +1097,30 @@ def fig_orientation_error(d, path):
 
 
 def _pick_example(d: StudyData, case: str):
-    """(arm, seed) of a run of ``case`` that succeeded for every trajectory controller and has
-    orientation switching in its traces; prefers the 9-DOF arm."""
+    """(arm, seed, traces) of a run of ``case`` with orientation switching in its traces, preferring
+    the 9-DOF arm and a seed that succeeded for every trajectory controller (then any seed)."""
     arms = sorted(d.arms, key=lambda a: (_dof(a) != 9, -(_dof(a) or 0)))
-    ctrls = d.trajectory_controllers
-    for a in arms:
-        trs = {c: d.traces(a, case, c) for c in ctrls}
-        trs = {c: t for c, t in trs.items() if t and {"pos_err", "seed"} <= set(t)}
-        if not trs:
-            continue
-        ok = None
-        for c in trs:
-            s = {int(_num(r["seed"])) for r in d.select(a, case, c) if run_cause(r) == "success"}
-            ok = s if ok is None else ok & s
-        first = next(iter(trs.values()))
-        for i, seed in enumerate(np.asarray(first["seed"]).astype(int)):
-            if seed not in (ok or set()):
+    for need_success in (True, False):
+        for a in arms:
+            trs = {c: d.traces(a, case, c) for c in d.trajectory_controllers}
+            trs = {c: t for c, t in trs.items() if t and {"pos_err", "seed"} <= set(t)}
+            if not trs:
                 continue
-            rot = np.asarray(first.get("rot", np.zeros_like(first["pos_err"])))[i] > 0.5
-            if rot.any() and (~rot).any():
-                return a, int(seed), trs
-        if ok:
-            return a, int(sorted(ok)[0]), trs
+            ok = None
+            for c in trs:
+                s = {int(_num(r["seed"])) for r in d.select(a, case, c)
+                     if run_cause(r) == "success" or not need_success}
+                ok = s if ok is None else ok & s
+            first = next(iter(trs.values()))
+            seeds = [int(x) for x in np.asarray(first["seed"]).astype(int)]
+            rot_all = np.asarray(first["rot"]) > 0.5 if "rot" in first else None
+            for i, seed in enumerate(seeds):
+                if seed in (ok or set()) and rot_all is not None and rot_all[i].any() and (~rot_all[i]).any():
+                    return a, seed, trs
+            if ok and need_success:
+                return a, int(sorted(ok)[0]), trs
+            if not need_success and seeds:
+                return a, seeds[0], trs
     return None
 
 
