@@ -94,7 +94,9 @@ class SimParams(eqx.Module):
       ``adjoint``: ``"recursive"`` (default), ``"direct"``, ``"backsolve"``;
       ``max_steps_per_sample``: step budget per sample (``max_steps = N *`` this);
       ``guidance_samples``: horizon of gradient-guided runs (600 = 6 s); ``hold_samples``: the
-      hold before a gradient-guided run stops (100 = 1 s); ``buffer_size``: virtual obstacles (20).
+      hold before a gradient-guided run stops (100 = 1 s); ``buffer_size``: virtual obstacles (20);
+      ``even_steps``: split the rest of each sample into equal steps (horizon mode, see
+      ``_EvenSplit``).
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
 
@@ -117,6 +119,7 @@ class SimParams(eqx.Module):
     guidance_samples: int = eqx.field(static=True, default=600)
     hold_samples: int = eqx.field(static=True, default=100)
     buffer_size: int = eqx.field(static=True, default=20)
+    even_steps: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.solver not in _SOLVERS:
@@ -326,12 +329,57 @@ def _make_adjoint(params: SimParams):
     return diffrax.BacksolveAdjoint()
 
 
-def _pid(params: SimParams, jump_ts=None):
+class _EvenSplit(diffrax.AbstractAdaptiveStepSizeController):
+    """Wraps a ``ClipStepSizeController`` with ``jump_ts`` at the sample ends: a proposed step
+    ``h`` from ``t`` is shortened to ``(b - t) / ceil((b - t) / h)``, ``b`` the next sample end,
+    so that the remainder of a sample is covered by equal steps. Without it a step of 0.8 t_s is
+    followed by a clipped sliver of 0.2 t_s and the PID controller restarts from that sliver after
+    the boundary (measured: about 25 % more steps). Only ever shortens steps, so the error control
+    is unchanged."""
+
+    inner: diffrax.ClipStepSizeController
+    ends: Array
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def wrap(self, direction):
+        return _EvenSplit(inner=self.inner.wrap(direction), ends=self.ends)
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        keep, next_t0, next_t1, made_jump, state, result = self.inner.adapt_step_size(
+            t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state)
+        i = jnp.minimum(jnp.searchsorted(self.ends, next_t0, side="right"), self.ends.shape[0] - 1)
+        b = self.ends[i]
+        h = next_t1 - next_t0
+        rem = b - next_t0
+        n = jnp.ceil(rem / jnp.where(h > 0, h, 1.0) - 1e-6)
+        even = next_t0 + rem / jnp.maximum(n, 1.0)
+        next_t1 = jnp.where((h > 0) & (rem > h) & (b > next_t0), jnp.minimum(next_t1, even), next_t1)
+        return keep, next_t0, next_t1, made_jump, state, result
+
+
+def _pid(params: SimParams, jump_ts=None, ends=None):
     pid = diffrax.PIDController(rtol=params.rtol, atol=params.atol, pcoeff=params.pcoeff,
                                 icoeff=params.icoeff, norm=_state_norm)
     if jump_ts is None:
         return pid
-    return diffrax.ClipStepSizeController(pid, jump_ts=jump_ts)
+    clip = diffrax.ClipStepSizeController(pid, jump_ts=jump_ts)
+    if ends is None or not params.even_steps:
+        return clip
+    return _EvenSplit(inner=clip, ends=ends)
 
 
 # --------------------------------------------------------------------------------------------
@@ -347,17 +395,18 @@ def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=N
     ends = ts * jnp.arange(1, N + 1, dtype=dtype)  # sample ends (k+1) t_s
     bounds = ends[:-1]  # jump times, the same floats the ZOH index is computed against
     t1 = ends[-1]
-    t_stop = ts * ref.n_samples.astype(dtype)  # frozen after the last valid sample
 
     def vf(t, y, args):
         k = jnp.searchsorted(bounds, t, side="right")
         rs = _ref_sample(ref, jref, k, n, dtype)
-        return _closed_loop(t, y, rs, env, t < t_stop, arm, controller, gains, params)
+        # frozen after the last valid sample; decided on the index (the final stage of the last
+        # step is evaluated at t = N t_s exactly, which still belongs to sample N - 1)
+        return _closed_loop(t, y, rs, env, k < ref.n_samples, arm, controller, gains, params)
 
     saveat = diffrax.SaveAt(ts=ends if save_ts is None else save_ts, dense=dense)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vf), _make_solver(params), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
-        saveat=saveat, stepsize_controller=_pid(params, jump_ts=bounds if N > 1 else None),
+        saveat=saveat, stepsize_controller=_pid(params, jump_ts=bounds if N > 1 else None, ends=ends),
         adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample * N, throw=False)
     stats = (sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
     return sol, stats, sol.result._value
