@@ -166,7 +166,8 @@ def test_free_space_tracking_no_flags(free, law):
     # sample-end error at that scale, and the rest-to-rest motion converges at the end.
     step = np.linalg.norm(np.diff(np.asarray(sc.reference.p), axis=0), axis=1).max()
     assert float(jnp.max(jnp.where(res.mask, res.pos_err, 0))) < 2 * step
-    assert float(m.final_pos_err) < 5e-3
+    # (the velocity loop, K_p = 10 1/s, has 0.1 s after the motion to converge: e^-1 of ~1.5 cm)
+    assert float(m.final_pos_err) < 0.01
     assert not bool(m.collided) and not bool(m.joint_limit) and bool(m.success)
     assert float(res.f_obs[-1]) == 0.0 and float(res.f_jl[-1]) == 0.0
     assert float(jnp.min(res.min_dist)) > 0.10

@@ -1,0 +1,123 @@
+"""Local-minima estimator, virtual-obstacle buffer and perfect-controller ODE (thesis 3.3.3, 3.4;
+SPEC section 9)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import redman_jax  # noqa: F401  (x64)
+from redman_jax._fields import FieldParams, total_potential
+from redman_jax._guidance import (PerfectParams, VirtualBuffer, estimate_local_minimum, perfect_controller,
+                                  perfect_controller_batch)
+from redman_jax._obstacles import make_obstacles, stack_obstacles
+
+
+def simple_scene(seed, x_start=(0.0, 0.0, 1.5)):
+    """Simple-obstacle scene built by hand per SPEC section 4 (U18): a goal at radius 0.45-0.70 m,
+    an impassable triangle of three r = 0.07 spheres (circumradius 0.16) midway and perpendicular
+    to the start-goal line, and a fourth sphere beside the line."""
+    rng = np.random.default_rng(seed)
+    xs = np.asarray(x_start, float)
+    while True:
+        r, th, z = rng.uniform(0.45, 0.70), rng.uniform(0, 2 * np.pi), rng.uniform(0.2, 1.0)
+        xg = np.array([r * np.cos(th), r * np.sin(th), z])
+        if 0.7 <= np.linalg.norm(xg - xs) <= 1.2:
+            break
+    u = (xg - xs) / np.linalg.norm(xg - xs)
+    a = np.cross(u, [0, 0, 1.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    mid, roll = 0.5 * (xs + xg), rng.uniform(0, 2 * np.pi)
+    tri = [mid + 0.16 * (np.cos(roll + k * 2 * np.pi / 3) * a + np.sin(roll + k * 2 * np.pi / 3) * b)
+           for k in range(3)]
+    for _ in range(100):
+        s, phi = rng.uniform(0.25, 0.75), rng.uniform(0, 2 * np.pi)
+        c4 = xs + s * (xg - xs) + rng.uniform(0.25, 0.35) * (np.cos(phi) * a + np.sin(phi) * b)
+        if (min(np.linalg.norm(c4 - xs), np.linalg.norm(c4 - xg)) >= 0.3
+                and min(np.linalg.norm(c4 - t) for t in tri) - 0.14 >= 0.2):
+            break
+    spheres = [(np.eye(3), c, (0.07,)) for c in tri + [c4]]
+    return make_obstacles(spheres=spheres, capacities=(4, 1, 1)), xs, xg, mid
+
+
+def test_buffer_is_fifo_of_last_20():
+    buf = VirtualBuffer.empty(20)
+    for i in range(25):
+        buf = buf.push(jnp.asarray([float(i), 0.0, 0.0]), jnp.asarray(True))
+    assert bool(jnp.all(buf.mask))
+    assert sorted(np.asarray(buf.p[:, 0]).tolist()) == list(range(5, 25))
+    same = buf.push(jnp.asarray([99.0, 0, 0]), jnp.asarray(False))
+    np.testing.assert_array_equal(np.asarray(same.p), np.asarray(buf.p))
+    assert int(same.head) == int(buf.head) == 5
+    part = VirtualBuffer.empty(20).push(jnp.ones(3), jnp.asarray(True))
+    assert int(part.mask.sum()) == 1
+
+
+def test_estimate_far_from_obstacles_is_the_goal():
+    """Without obstacles in range H = 2I and one Newton step lands on the goal (E13)."""
+    obs = make_obstacles(spheres=[(np.eye(3), [5.0, 5.0, 5.0], (0.1,))], capacities=(1, 1, 1))
+    goal = jnp.asarray([0.5, 0.2, 0.8])
+    buf = VirtualBuffer.empty(20)
+    x_min, ok = estimate_local_minimum(jnp.asarray([0.0, 0.0, 1.5]), goal, obs, buf.p, buf.mask, FieldParams())
+    assert bool(ok)
+    np.testing.assert_allclose(x_min, goal, atol=1e-6)  # mu = 1e-6 biases the step by 5e-7 relative
+    far, ok2 = estimate_local_minimum(jnp.asarray([0.0, 0.0, 1.5]), goal, obs, buf.p, buf.mask, FieldParams(),
+                                      max_jump=0.5)
+    assert not bool(ok2)  # |x_min - x| = 0.98 m > 0.5 m: skipped
+
+
+def test_estimate_is_a_newton_step_on_the_potential():
+    """Near the triangle: the step equals -(H + mu I)^-1 g with g, H of the total potential by
+    central finite differences (an independent route through total_potential)."""
+    obs, xs, xg, mid = simple_scene(1)
+    x = jnp.asarray(mid + 0.25 * (xs - mid) / np.linalg.norm(xs - mid) + np.array([0.01, -0.02, 0.015]))
+    buf = VirtualBuffer.empty(20)
+    fp = FieldParams()
+    f = lambda y: float(total_potential(jnp.asarray(y), jnp.asarray(xg), obs, buf.p, buf.mask, fp))
+    h = 1e-4
+    E = np.eye(3) * h
+    g = np.array([(f(x + E[i]) - f(x - E[i])) / (2 * h) for i in range(3)])
+    H = np.array([[(f(x + E[i] + E[j]) - f(x + E[i] - E[j]) - f(x - E[i] + E[j]) + f(x - E[i] - E[j])) / (4 * h * h)
+                   for j in range(3)] for i in range(3)])
+    expect = np.asarray(x) - np.linalg.solve(H + 1e-6 * np.eye(3), g)
+    x_min, ok = estimate_local_minimum(x, jnp.asarray(xg), obs, buf.p, buf.mask, fp)
+    assert bool(ok)
+    np.testing.assert_allclose(x_min, expect, atol=1e-4 * max(1.0, np.abs(expect - np.asarray(x)).max()))
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_perfect_controller_needs_the_estimator(seed):
+    """Plain gradient descent sticks in front of the triangle; with the estimator the point reaches
+    the goal and holds it, and the virtual obstacles sit around the trap (Figure 3.7)."""
+    obs, xs, xg, mid = simple_scene(seed)
+    plain = perfect_controller(xs, xg, obs, PerfectParams(estimator=False))
+    guided = perfect_controller(xs, xg, obs, PerfectParams())
+    assert not bool(plain.success) and float(plain.termination.final_err) > 0.3
+    assert bool(guided.success) and bool(guided.termination.held)
+    n = int(guided.termination.n_samples)
+    assert n < 600 and float(guided.goal_err[n - 1]) < 0.10
+    assert float(jnp.min(guided.min_dist[:n])) > 0.0  # never inside an obstacle
+    # estimates were placed near the trap (within 0.3 m of the triangle centre) while passing it
+    est = np.asarray(guided.estimates)[np.asarray(guided.estimate_valid)]
+    assert np.min(np.linalg.norm(est - mid, axis=1)) < 0.3
+    assert float(guided.path_length) > np.linalg.norm(xg - xs)
+    assert np.isfinite(float(guided.termination.time_to_goal))
+
+
+def test_perfect_controller_batch_equals_singles():
+    scenes = [simple_scene(s) for s in (2, 4)]
+    obs = stack_obstacles([s[0] for s in scenes])
+    x0 = jnp.asarray(np.stack([s[1] for s in scenes]))
+    xg = jnp.asarray(np.stack([s[2] for s in scenes]))
+    pp = PerfectParams(n_samples=200, hold_samples=20)
+    batch = perfect_controller_batch(x0, xg, obs, pp)
+    for i, s in enumerate(scenes):
+        single = perfect_controller(s[1], s[2], s[0], pp)
+        np.testing.assert_allclose(batch.x[i], single.x, rtol=0, atol=1e-12)
+
+
+def test_bad_input_raises():
+    obs, xs, xg, _ = simple_scene(1)
+    with pytest.raises(ValueError, match="x0"):
+        perfect_controller(np.zeros(2), xg, obs)

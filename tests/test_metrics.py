@@ -1,0 +1,88 @@
+"""Evaluation measures (thesis 3.5 and 4; SPEC section 10)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import redman_jax  # noqa: F401  (x64)
+from redman_jax._math import quat_mul
+from redman_jax._metrics import (aggregate_errors, failure_rate, guidance_termination, masked_mean,
+                                 orientation_errors, path_length, per_run_mean, pooled_mean,
+                                 position_errors, run_metrics, time_per_call)
+
+
+def _axis_angle(axis, phi):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return np.concatenate([[np.cos(phi / 2)], np.sin(phi / 2) * axis])
+
+
+def test_orientation_error_is_sin_half_angle():
+    """E19: 45 deg gives 0.383, 90 deg gives 0.707; independent of the reference attitude and of
+    the quaternion sign."""
+    rng = np.random.default_rng(0)
+    qd = _axis_angle(rng.normal(size=3), 0.7)
+    phis = np.array([0.0, np.pi / 4, np.pi / 2, 2.0])
+    qs = np.stack([np.asarray(quat_mul(jnp.asarray(_axis_angle(rng.normal(size=3), -p)), jnp.asarray(qd)))
+                   for p in phis])
+    qs[1] *= -1.0  # sign flip must not matter
+    e = orientation_errors(jnp.asarray(qs), jnp.asarray(np.tile(qd, (4, 1))))
+    np.testing.assert_allclose(e, np.sin(phis / 2), atol=1e-12)
+    np.testing.assert_allclose(float(e[1]), 0.38268343236, atol=1e-10)
+
+
+def test_position_errors_and_path_length():
+    p = jnp.asarray([[0.0, 0, 0], [3.0, 4.0, 0], [3.0, 4.0, 1.0]])
+    pd = jnp.zeros((3, 3))
+    np.testing.assert_allclose(position_errors(p, pd), [0.0, 5.0, np.sqrt(26.0)])
+    assert float(path_length(jnp.zeros(3), p, jnp.asarray([True, True, False]))) == pytest.approx(5.0)
+    assert np.isnan(float(masked_mean(jnp.ones(3), jnp.zeros(3, bool))))
+
+
+def test_run_metrics_failure_rules():
+    e = jnp.asarray([0.01, 0.02, 0.03, 0.5])
+    rot = jnp.asarray([0.0, 0.0, 1.0, 1.0])
+    mask = jnp.asarray([True, True, True, False])
+    m = run_metrics(e, e, rot, mask, jnp.asarray(0.05), jnp.asarray(0.0), jnp.asarray(0.2), False)
+    assert float(m.mean_pos_err) == pytest.approx(0.02) and float(m.mean_ori_err) == pytest.approx(0.03)
+    assert bool(m.success) and bool(m.joint_limit) and int(m.cause) == 0  # contact is not a failure
+    m = run_metrics(e, e, rot, mask, jnp.asarray(0.05), jnp.asarray(1e-3), jnp.asarray(0.0), False)
+    assert not bool(m.success) and int(m.cause) == 1
+    m = run_metrics(e, e, rot, mask, jnp.asarray(0.11), jnp.asarray(0.0), jnp.asarray(0.0), False)
+    assert not bool(m.success) and int(m.cause) == 2
+
+
+def test_guidance_termination():
+    N, ts = 600, 0.01
+    err = np.full(N, 0.5)
+    err[50:60] = 0.05  # a short visit: not held
+    err[200:] = 0.05  # enters for good at sample 200
+    t = guidance_termination(jnp.asarray(err), ts, hold_samples=100)
+    assert bool(t.held) and bool(t.success)
+    assert int(t.n_samples) == 300  # samples 200..299 are the 100 held sample ends
+    assert float(t.time_to_goal) == pytest.approx(2.01)
+    assert int(t.mask.sum()) == 300
+    never = guidance_termination(jnp.full(N, 0.3), ts)
+    assert not bool(never.success) and int(never.n_samples) == N and np.isinf(float(never.time_to_goal))
+    late = np.full(N, 0.3)
+    late[-30:] = 0.05  # reached at the end without the hold: the final error decides (U26)
+    t = guidance_termination(jnp.asarray(late), ts)
+    assert not bool(t.held) and bool(t.success) and int(t.n_samples) == N
+    assert not bool(guidance_termination(jnp.asarray(err), ts, collided=True).success)
+
+
+def test_pooled_vs_per_run():
+    err = jnp.asarray([[1.0, 1.0, 1.0, 1.0], [3.0, 0.0, 0.0, 0.0], [100.0, 100.0, 100.0, 100.0]])
+    mask = jnp.asarray([[True, True, True, True], [True, False, False, False], [True] * 4])
+    ok = jnp.asarray([True, True, False])  # the failed run is excluded
+    assert float(pooled_mean(err, mask, ok)) == pytest.approx(7.0 / 5.0)
+    assert float(per_run_mean(err, mask, ok)) == pytest.approx(2.0)
+    assert float(aggregate_errors(err, mask, ok, "per_run")) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="pooling"):
+        aggregate_errors(err, mask, ok, "median")
+    assert float(failure_rate(ok)) == pytest.approx(1 / 3)
+
+
+def test_time_per_call_positive():
+    t = time_per_call(lambda x: jnp.sin(x) @ x, jnp.ones(8), n_calls=20)
+    assert 0.0 < t < 1.0
