@@ -1,0 +1,447 @@
+"""Obstacle distances and potential fields (SPEC section 3; thesis 3.2.4, 3.3.3).
+
+References are independent: signed distances against brute-force nearest surface samples (scipy
+KD-tree), gradients against central finite differences and ``jax.grad``, Hessians against finite
+differences of the gradient, the virtual-obstacle gradient against the derivative of 3.25 with the
+amplitude held fixed.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from redman_jax._fields import (
+    FieldParams,
+    guidance_velocity,
+    obstacle_field_gradient,
+    obstacle_field_gradients,
+    obstacle_field_potential,
+    obstacle_potential,
+    obstacle_potential_d2r,
+    obstacle_potential_dr,
+    obstacle_sdf_and_normals,
+    total_gradient,
+    total_gradient_batch,
+    total_gradient_points,
+    total_hessian,
+    total_potential,
+    total_potential_points,
+    virtual_gradient,
+    virtual_potential,
+)
+from redman_jax._obstacles import make_obstacles, obstacle_distances, pad_obstacles, stack_obstacles
+
+# Brute-force surface sampling spacing [m]; the nearest sample to the true closest point on a face
+# is at most H_SURF/sqrt(2) away on a square grid (and the curved grids below are finer than
+# H_SURF along the arc), so |brute - true| <= H_SURF/sqrt(2) (distance is 1-Lipschitz).
+H_SURF = 0.004
+SDF_TOL = H_SURF / np.sqrt(2) + 1e-9
+# Central differences with step 1e-6 on functions whose third derivative is O(1e3) (a = 5e-4,
+# r >= 0.1): truncation ~ eps^2 |f'''| ~ 1e-9, round-off ~ 1e-16 |f| / eps ~ 1e-10.
+FD_RTOL = 1e-6
+FD_ATOL = 1e-7
+
+
+# Jitted, point-vectorised versions (compiled once per static structure) keep the test fast.
+_P = (0, None, None, None, None, None)
+_ofg_v = jax.jit(jax.vmap(obstacle_field_gradient, in_axes=(None, 0, None, None, None)),
+                 static_argnums=4)
+_ofp_v = jax.jit(jax.vmap(obstacle_field_potential, in_axes=(None, 0, None, None, None)),
+                 static_argnums=4)
+_ofp_grad_v = jax.jit(jax.vmap(jax.grad(obstacle_field_potential, 1),
+                               in_axes=(None, 0, None, None, None)), static_argnums=4)
+_tg_v = jax.jit(jax.vmap(total_gradient, in_axes=_P))
+_tp_v = jax.jit(jax.vmap(total_potential, in_axes=_P))
+_tgrad_v = jax.jit(jax.vmap(jax.grad(total_potential), in_axes=_P))
+_th_v = jax.jit(jax.vmap(total_hessian, in_axes=_P))
+_thess_v = jax.jit(jax.vmap(jax.hessian(total_potential), in_axes=_P))
+
+
+def _fd_points(f_v, xs, eps=1e-6):
+    """Central differences of a point-vectorised ``f_v: (N, 3) -> (N, ...)`` at every row of
+    ``xs``: ``(N, ..., 3)``, in one call."""
+    xs = np.asarray(xs)
+    E = np.eye(3) * eps
+    X = np.concatenate([xs[:, None, :] + E[None], xs[:, None, :] - E[None]], 1).reshape(-1, 3)
+    F = np.asarray(f_v(jnp.asarray(X)))
+    F = F.reshape((xs.shape[0], 2, 3) + F.shape[1:])
+    d = (F[:, 0] - F[:, 1]) / (2 * eps)  # (N, 3, ...)
+    return np.moveaxis(d, 1, -1)
+
+
+def _rot(seed):
+    return Rotation.random(random_state=seed).as_matrix()
+
+
+def _grid(a, b, h):
+    return np.linspace(a, b, max(2, int(np.ceil((b - a) / h)) + 1))
+
+
+def _box_surface(b, h=H_SURF):
+    pts = []
+    for ax in range(3):
+        o1, o2 = [i for i in range(3) if i != ax]
+        u, v = np.meshgrid(_grid(-b[o1], b[o1], h), _grid(-b[o2], b[o2], h), indexing="ij")
+        for sgn in (-1, 1):
+            p = np.zeros(u.shape + (3,))
+            p[..., ax] = sgn * b[ax]
+            p[..., o1], p[..., o2] = u, v
+            pts.append(p.reshape(-1, 3))
+    return np.concatenate(pts)
+
+
+def _cylinder_surface(r, hh, h=H_SURF):
+    th = np.linspace(0, 2 * np.pi, int(np.ceil(2 * np.pi * r / h)) + 1)
+    z = _grid(-hh, hh, h)
+    T, Z = np.meshgrid(th, z, indexing="ij")
+    side = np.stack([r * np.cos(T), r * np.sin(T), Z], -1).reshape(-1, 3)
+    caps = []
+    for rr in _grid(0, r, h):
+        n = max(1, int(np.ceil(2 * np.pi * rr / h)) + 1)
+        t = np.linspace(0, 2 * np.pi, n)
+        for zc in (-hh, hh):
+            caps.append(np.stack([rr * np.cos(t), rr * np.sin(t), np.full(n, zc)], -1))
+    return np.concatenate([side] + caps)
+
+
+def _sphere_surface(r, h=H_SURF):
+    n = int(4 * np.pi * r**2 / (h**2 * 0.5)) + 1  # Fibonacci lattice, area per point < h^2 / 2
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = np.pi * (1 + 5**0.5) * i
+    return r * np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], -1)
+
+
+def _inside(kind, dims, xl):
+    if kind == "spheres":
+        return np.linalg.norm(xl, axis=-1) < dims[0]
+    if kind == "boxes":
+        return np.all(np.abs(xl) < dims, axis=-1)
+    return (np.linalg.norm(xl[:, :2], axis=-1) < dims[0]) & (np.abs(xl[:, 2]) < dims[1])
+
+
+SHAPES = [
+    ("spheres", np.array([0.12, 0, 0]), _sphere_surface),
+    ("boxes", np.array([0.10, 0.06, 0.15]), _box_surface),
+    ("cylinders", np.array([0.07, 0.12, 0]), _cylinder_surface),
+]
+
+
+@pytest.mark.parametrize("kind,dims,surface", SHAPES, ids=[s[0] for s in SHAPES])
+def test_sdf_matches_brute_force_surface_sampling(kind, dims, surface, rng):
+    R = _rot(3)
+    p = np.array([0.3, -0.2, 0.8])
+    need = {"spheres": 1, "boxes": 3, "cylinders": 2}[kind]
+    obs = make_obstacles(**{kind: [(R, p, dims[:need])]})
+    local = surface(dims[0]) if kind == "spheres" else surface(dims) if kind == "boxes" else \
+        surface(dims[0], dims[1])
+    tree = cKDTree(local @ R.T + p)
+    # query points: a shell around the shape (outside) and points inside
+    half = np.where(dims > 0, dims, 0.0)
+    half = {"spheres": np.full(3, dims[0]), "boxes": half, "cylinders": dims[[0, 0, 1]]}[kind]
+    xl = rng.uniform(-1.8, 1.8, size=(400, 3)) * half
+    x = xl @ R.T + p
+    inside = _inside(kind, dims, xl)
+    assert inside.sum() > 20 and (~inside).sum() > 20
+    sdf = np.asarray(jax.vmap(lambda q: obstacle_distances(obs, q)[0])(jnp.asarray(x)))
+    brute, _ = tree.query(x)
+    # sign: negative inside, positive outside
+    assert np.all(sdf[inside] <= 0) and np.all(sdf[~inside] > 0)
+    # magnitude: brute force over surface samples overestimates by at most SDF_TOL
+    err = brute - np.abs(sdf)
+    assert err.min() >= -1e-12, err.min()
+    assert err.max() <= SDF_TOL, err.max()
+
+
+@pytest.mark.parametrize("kind,dims,surface", SHAPES, ids=[s[0] for s in SHAPES])
+def test_sdf_normals_are_unit_and_match_finite_differences(kind, dims, surface, rng):
+    R = _rot(7)
+    p = np.array([-0.1, 0.4, 0.5])
+    need = {"spheres": 1, "boxes": 3, "cylinders": 2}[kind]
+    obs = make_obstacles(**{kind: [(R, p, dims[:need])]})
+    xl = rng.uniform(-2.0, 2.0, size=(60, 3)) * np.max(dims)
+    x = xl @ R.T + p
+    d, n = jax.vmap(obstacle_sdf_and_normals, in_axes=(None, 0))(obs, jnp.asarray(x))
+    sdf = lambda q: np.asarray(_distances(obs, jnp.asarray(q)))[:, 0]
+    eps = 1e-6
+    fd = np.stack([(sdf(x + eps * e) - sdf(x - eps * e)) / (2 * eps) for e in np.eye(3)], -1)
+    np.testing.assert_allclose(d[:, 0], sdf(x), rtol=1e-14, atol=1e-15)  # same sdf, other fusion
+    # skip the measure-zero ridges where the sdf is not differentiable (FD straddles a kink)
+    smooth = np.abs(np.linalg.norm(fd, axis=1) - 1) < 1e-6
+    assert smooth.sum() > 40
+    np.testing.assert_allclose(np.linalg.norm(n[smooth, 0], axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(n[smooth, 0], fd[smooth], atol=1e-6)
+
+
+def test_radial_potential_forms():
+    a, D = 0.0005, 0.5
+    r = jnp.linspace(0.02, 0.7, 200)
+    for form in ("minus", "plus"):
+        dv = obstacle_potential_dr(r, a, D, form)
+        ad = jax.vmap(jax.grad(lambda s: obstacle_potential(s, a, D, form)))(r)
+        np.testing.assert_allclose(dv, ad, rtol=1e-12)
+        d2 = obstacle_potential_d2r(r, a, D, form)
+        ad2 = jax.vmap(jax.grad(lambda s: obstacle_potential_dr(s, a, D, form)))(r)
+        np.testing.assert_allclose(d2, ad2, rtol=1e-12)
+    # "minus" (E4): continuous and zero at D, non-negative and decreasing on (0, D]
+    rin = r[r <= D]
+    vm = obstacle_potential(rin, a, D, "minus")
+    assert np.all(vm >= 0) and np.all(np.diff(vm) < 0)
+    assert abs(float(obstacle_potential(D, a, D, "minus"))) < 1e-15
+    # gradient jump a/D^4 at D (SPEC section 3)
+    np.testing.assert_allclose(-obstacle_potential_dr(D, a, D, "minus"), a / D**4, rtol=1e-12)
+    # "plus": thesis 3.8/3.9 literally, jump 2a/D^3 in V at D; 3.9 in vector form
+    np.testing.assert_allclose(obstacle_potential(D, a, D, "plus"), 2 * a / D**3, rtol=1e-12)
+    rr = 0.2
+    thesis_39 = -a * rr * (2 / (D * rr**4) + 3 / rr**5)  # -a x_d (2/(d x_d^4) + 3/x_d^5) along n
+    np.testing.assert_allclose(obstacle_potential_dr(rr, a, D, "plus"), thesis_39, rtol=1e-12)
+    # the "plus" force is (3D + 2r)/(3D - 2r) times the "minus" one: 1.2-1.7x at r = 0.1-0.3 m
+    # for the null-space range D = 0.75 (SPEC E4)
+    r2 = jnp.array([0.1, 0.3])
+    ratio = obstacle_potential_dr(r2, a, 0.75, "plus") / obstacle_potential_dr(r2, a, 0.75, "minus")
+    np.testing.assert_allclose(ratio, (2.25 + 2 * r2) / (2.25 - 2 * r2), rtol=1e-12)
+    assert 1.19 < ratio[0] < ratio[1] < 1.73
+
+
+def _scene():
+    return make_obstacles(
+        spheres=[(np.eye(3), [0.45, 0.0, 0.6], [0.08])],
+        boxes=[(_rot(1), [0.0, 0.45, 0.7], [0.10, 0.05, 0.08])],
+        cylinders=[(_rot(2), [-0.35, -0.1, 0.5], [0.05, 0.15])],
+        capacities=(2, 3, 2),
+    )
+
+
+_distances = jax.jit(jax.vmap(obstacle_distances, in_axes=(None, 0)))
+
+
+def _outside_points(obs, rng, n, dmin=0.06, dmax=0.45):
+    x = rng.uniform([-0.8, -0.6, 0.2], [0.9, 0.9, 1.1], size=(40 * n, 3))
+    d = np.asarray(_distances(obs, jnp.asarray(x)))
+    # well outside every obstacle, inside some range, and away from the cut-off D = 0.5 / 0.75
+    keep = (d.min(1) > dmin) & (d.min(1) < dmax) & np.all(np.abs(d - 0.5) > 0.01, axis=1) & \
+        np.all(np.abs(d - 0.75) > 0.01, axis=1)
+    assert keep.sum() >= n
+    return x[keep][:n]
+
+
+@pytest.mark.parametrize("form", ["minus", "plus"])
+def test_obstacle_gradient_matches_grad_and_finite_differences(form, rng):
+    obs = _scene()
+    xs = _outside_points(obs, rng, 8)
+    for a, D in ((0.0005, 0.5), (0.05, 0.75)):
+        g = np.asarray(_ofg_v(obs, jnp.asarray(xs), a, D, form))
+        ag = np.asarray(_ofp_grad_v(obs, jnp.asarray(xs), a, D, form))
+        fd = _fd_points(lambda X: _ofp_v(obs, X, a, D, form), xs)
+        scale = np.abs(g).max(axis=1, keepdims=True)
+        np.testing.assert_allclose(g, ag, rtol=1e-12, atol=1e-14 * scale.max())
+        assert np.all(np.abs(g - fd) <= FD_RTOL * np.abs(g) + FD_ATOL * np.maximum(1, scale))
+
+
+def test_obstacle_gradients_over_points_and_padding(rng):
+    obs = _scene()
+    xs = jnp.asarray(_outside_points(obs, rng, 6))
+    f = jax.jit(obstacle_field_gradients, static_argnums=4)
+    G = f(obs, xs, 0.05, 0.75, "minus")
+    Gp = f(pad_obstacles(obs, (5, 5, 5)), xs, 0.05, 0.75, "minus")
+    np.testing.assert_allclose(G, _ofg_v(obs, xs, 0.05, 0.75, "minus"), rtol=1e-14)
+    np.testing.assert_allclose(G, Gp, rtol=1e-14)  # masked slots contribute nothing
+
+
+@pytest.mark.parametrize("kind", ["spheres", "boxes", "cylinders"])
+def test_clamp_inside_obstacle_gives_finite_outward_force(kind):
+    R = _rot(4)
+    c = np.array([0.2, 0.1, 0.7])
+    dims = {"spheres": [0.1], "boxes": [0.1, 0.08, 0.12], "cylinders": [0.1, 0.12]}[kind]
+    obs = make_obstacles(**{kind: [(R, c, dims)]}, capacities=(2, 3, 2))
+    a, D, eps = 0.05, 0.75, 1e-3
+    x = jnp.asarray(c + R @ np.array([0.04, 0.01, -0.02]))  # inside, off every sdf ridge
+    slot = {"spheres": 0, "boxes": 2, "cylinders": 5}[kind]
+    d, n = jax.jit(obstacle_sdf_and_normals)(obs, x)
+    d, n = d[slot], n[slot]
+    assert d < 0
+    g = _ofg_v(obs, x[None], a, D, "minus")[0]
+    assert np.all(np.isfinite(g)) and np.linalg.norm(g) > 0
+    # magnitude of V'(eps), along the unclamped sdf gradient; the force -g points outward (+n)
+    np.testing.assert_allclose(g, obstacle_potential_dr(eps, a, D) * n, rtol=1e-12)
+    assert float(-g @ n) > 0
+    # jax.grad of the clamped potential gives the same force (custom JVP), not zero
+    np.testing.assert_allclose(_ofp_grad_v(obs, x[None], a, D, "minus")[0], g, rtol=1e-12)
+    # Hessian: finite; equals the derivative of the gradient (no radial term inside)
+    params = FieldParams(a=a, D=D)
+    zero_buf = (jnp.zeros((3, 3)), jnp.zeros(3, bool))
+    H = _th_v(x[None], x + 1.0, obs, *zero_buf, params)
+    assert np.all(np.isfinite(H))
+    fd = _fd_points(lambda X: _tg_v(X, x + 1.0, obs, *zero_buf, params), x[None], eps=1e-7)
+    # round-off of a difference of two gradients of size |g| over 2 eps, with margin 10
+    noise = 10 * np.linalg.norm(g) * np.finfo(float).eps / 1e-7
+    np.testing.assert_allclose(H, fd, rtol=1e-5, atol=1e-5 * np.abs(H).max() + noise)
+
+
+def _field_inputs():
+    obs = _scene()  # capacities (2, 3, 2); buffers of 3 everywhere, so the jitted helpers compile once
+    goal = jnp.array([0.3, 0.3, 0.9])
+    vp = jnp.array([[0.1, 0.2, 0.8], [0.25, 0.1, 0.7], [9.0, 9.0, 9.0]])
+    vm = jnp.array([True, True, False])
+    return obs, goal, vp, vm
+
+
+@pytest.mark.parametrize("form", ["minus", "plus"])
+def test_total_gradient_and_hessian(form, rng):
+    obs, goal, vp, vm = _field_inputs()
+    params = FieldParams(form=form)
+    xs = _outside_points(obs, rng, 12, dmax=0.4)
+    # stay off the virtual-obstacle range edge d_v = 0.25 where the gradient jumps
+    rho = np.linalg.norm(xs[:, None, :] - np.asarray(vp)[None], axis=-1)
+    xs = jnp.asarray(xs[np.all(np.abs(rho - 0.25) > 0.01, axis=1)][:6])
+    g = _tg_v(xs, goal, obs, vp, vm, params)
+    np.testing.assert_allclose(_tgrad_v(xs, goal, obs, vp, vm, params), g, rtol=1e-12, atol=1e-12)
+    H = np.asarray(_th_v(xs, goal, obs, vp, vm, params))
+    fd = _fd_points(lambda X: _tg_v(X, goal, obs, vp, vm, params), xs)
+    for Hi, fdi in zip(H, fd):
+        np.testing.assert_allclose(Hi, fdi, rtol=1e-6, atol=1e-6 * np.abs(Hi).max())
+        np.testing.assert_allclose(Hi, Hi.T, rtol=1e-12, atol=1e-12 * np.abs(Hi).max())
+    np.testing.assert_allclose(H, _thess_v(xs, goal, obs, vp, vm, params), rtol=1e-10,
+                               atol=1e-10 * np.abs(H).max())
+
+
+def _empty():
+    return make_obstacles(capacities=(2, 3, 2))  # same structure as _scene(): no recompilation
+
+
+def test_goal_only_field_is_exact_quadratic():
+    obs = _empty()
+    goal = jnp.array([0.2, -0.1, 0.5])
+    xs = jnp.array([[0.7, 0.3, 0.2], [-0.4, 0.1, 1.3]])
+    vp, vm = jnp.zeros((3, 3)), jnp.zeros(3, bool)
+    p = FieldParams()
+    np.testing.assert_allclose(_tp_v(xs, goal, obs, vp, vm, p), np.sum((xs - goal) ** 2, -1))
+    g = _tg_v(xs, goal, obs, vp, vm, p)
+    H = _th_v(xs, goal, obs, vp, vm, p)
+    np.testing.assert_allclose(g, 2 * (xs - goal))
+    np.testing.assert_allclose(H, np.broadcast_to(2 * np.eye(3), H.shape), atol=1e-15)
+    # a Newton step (3.24) lands exactly on the goal
+    xmin = xs - jnp.linalg.solve(H, g[..., None])[..., 0]
+    np.testing.assert_allclose(xmin, np.broadcast_to(goal, xs.shape), atol=1e-15)
+
+
+_vg_v = jax.jit(jax.vmap(virtual_gradient, in_axes=(0, None, None, None, None)))
+_vp_v = jax.jit(jax.vmap(virtual_potential, in_axes=(0, None, None, None, None)))
+
+
+def test_virtual_obstacle_gradient_matches_derivative_with_constant_amplitude():
+    goal = jnp.array([0.5, 0.0, 0.8])
+    xv = jnp.array([[0.1, 0.1, 0.9], [0.0, 0.0, 0.0], [0.3, 0.3, 0.3]])
+    vm = jnp.array([True, False, False])
+    x0 = np.array([0.2, 0.05, 0.95])  # rho ~ 0.12 < d_v
+    p = FieldParams()
+    A0 = 0.1 * np.sum((x0 - np.asarray(goal)) ** 2)
+
+    def vv_fixed_amp(X):  # 3.25 with A frozen at its value at x0 (NumPy, independent)
+        rho = np.linalg.norm(np.asarray(X) - np.asarray(xv[0]), axis=-1)
+        return A0 * (1 / (rho + 1) - 1 / (0.25 + 1))
+
+    g = np.asarray(_vg_v(jnp.asarray(x0[None]), goal, xv, vm, p))[0]
+    np.testing.assert_allclose(g, _fd_points(vv_fixed_amp, x0[None])[0], rtol=1e-7)
+    # 3.26 corrected (E14): -A (x - x_v) / (rho (rho + 1)^2)
+    d = x0 - np.asarray(xv[0])
+    rho = np.linalg.norm(d)
+    np.testing.assert_allclose(g, -A0 * d / (rho * (rho + 1) ** 2), rtol=1e-12)
+    # amp_exact: the full derivative of A(x) phi(rho)
+    pe = FieldParams(amp_exact=True)
+    fd_full = _fd_points(lambda X: _vp_v(X, goal, xv, vm, pe), x0[None])[0]
+    np.testing.assert_allclose(_vg_v(jnp.asarray(x0[None]), goal, xv, vm, pe)[0], fd_full, rtol=1e-7)
+    # "site" amplitude: A_j from the obstacle's own distance to the goal; zero for a site at the goal
+    ps = FieldParams(vo_amp="site")
+    xv2 = xv.at[1].set(goal)
+    vm2 = jnp.array([True, True, False])
+    fd_site = _fd_points(lambda X: _vp_v(X, goal, xv2, vm2, ps), x0[None])[0]
+    np.testing.assert_allclose(_vg_v(jnp.asarray(x0[None]), goal, xv2, vm2, ps)[0], fd_site, rtol=1e-7)
+    only_goal_site = jnp.array([False, True, False])
+    at_goal = _vg_v((goal + 0.01)[None], goal, xv2, only_goal_site, ps)
+    np.testing.assert_array_equal(at_goal, np.zeros((1, 3)))
+    # on top of a virtual obstacle: finite (rho floor) and zero; finite Jacobian
+    on = _vg_v(xv[:1], goal, xv, vm, p)
+    assert np.all(np.isfinite(on)) and np.allclose(on, 0)
+    assert np.all(np.isfinite(jax.jit(jax.jacfwd(virtual_gradient))(xv[0], goal, xv, vm, p)))
+    # out of range (rho > d_v) and masked slots contribute nothing
+    far = jnp.asarray(x0) + jnp.array([0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(_vg_v(far[None], goal, xv, vm, p), np.zeros((1, 3)))
+
+
+_gv_v = jax.jit(jax.vmap(guidance_velocity, in_axes=_P + (None, None)))
+
+
+def test_guidance_velocity_magnitude_and_direction():
+    obs, goal, vp, vm = _field_inputs()
+    p = FieldParams()
+    x = jnp.array([[0.0, -0.3, 1.0]])
+    v = np.asarray(_gv_v(x, goal, obs, vp, vm, p, 0.5, 0.1))[0]
+    g = np.asarray(_tg_v(x, goal, obs, vp, vm, p))[0]
+    dist = float(jnp.linalg.norm(x[0] - goal))
+    # |v| = a tanh(|x - x_g| / b) |g| / (|g| + 1e-9): relative deviation 1e-9 / |g|
+    np.testing.assert_allclose(np.linalg.norm(v), 0.5 * np.tanh(dist / 0.1),
+                               rtol=2e-9 / np.linalg.norm(g))
+    np.testing.assert_allclose(v / np.linalg.norm(v), -g / np.linalg.norm(g), rtol=1e-12)
+    # empty scene: straight to the goal, slowing within b of it, zero (not NaN) at the goal
+    empty = _empty()
+    offs = np.array([0.5, 0.02])
+    xs = goal + jnp.asarray(offs)[:, None] * jnp.array([1.0, 0.0, 0.0])
+    vv = _gv_v(jnp.concatenate([xs, goal[None]]), goal, empty, vp, vm * False, p, 0.5, 0.1)
+    expect = 0.5 * np.tanh(offs / 0.1)
+    g_norm = 2 * offs  # |g| = 2 |x - x_g|
+    np.testing.assert_allclose(-vv[:2, 0], expect * g_norm / (g_norm + 1e-9), rtol=1e-12)
+    np.testing.assert_array_equal(vv[:2, 1:], 0.0)
+    assert np.all(vv[2] == 0)
+    jac = jax.jit(jax.jacfwd(guidance_velocity))(goal + 1e-3, goal, empty, vp, vm * False, p)
+    assert np.all(np.isfinite(jac))
+
+
+def test_points_and_scenario_batches(rng):
+    obs, goal, vp, vm = _field_inputs()
+    p = FieldParams(form="plus")
+    xs = jnp.asarray(_outside_points(obs, rng, 5))
+    Vp = jax.jit(total_potential_points)(xs, goal, obs, vp, vm, p)
+    Gp = jax.jit(total_gradient_points)(xs, goal, obs, vp, vm, p)
+    np.testing.assert_allclose(Vp, _tp_v(xs, goal, obs, vp, vm, p), rtol=1e-14)
+    np.testing.assert_allclose(Gp, _tg_v(xs, goal, obs, vp, vm, p), rtol=1e-14)
+    # two scenarios with different obstacle counts, stacked (padding to common capacities)
+    other = make_obstacles(spheres=[(np.eye(3), [0.0, 0.0, 0.5], [0.1])], capacities=(2, 3, 2))
+    stacked = stack_obstacles([obs, other])
+    goals = jnp.stack([goal, goal + 0.1])
+    G = total_gradient_batch(jnp.stack([xs, xs]), goals, stacked, jnp.stack([vp, vp]),
+                             jnp.stack([vm, vm]), p)
+    np.testing.assert_allclose(G[0], Gp, rtol=1e-13)
+    np.testing.assert_allclose(G[1], _tg_v(xs, goals[1], other, vp, vm, p), rtol=1e-13)
+
+
+def test_float32_runs():
+    obs, goal, vp, vm = _field_inputs()
+    f32 = lambda t: jax.tree.map(
+        lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
+    x = jnp.array([[0.0, -0.3, 1.0]])
+    p = FieldParams()
+    g64 = _tg_v(x, goal, obs, vp, vm, p)
+    g32 = _tg_v(*f32((x, goal, obs, vp, vm, p)))
+    H32 = _th_v(*f32((x, goal, obs, vp, vm, p)))
+    assert g32.dtype == jnp.float32 and H32.dtype == jnp.float32
+    assert np.all(np.isfinite(H32))
+    np.testing.assert_allclose(g32, g64, rtol=1e-4)
+
+
+def test_bad_parameters_raise():
+    with pytest.raises(ValueError, match="form"):
+        FieldParams(form="exp")
+    with pytest.raises(ValueError, match="vo_amp"):
+        FieldParams(vo_amp="goal")
+    with pytest.raises(ValueError, match="FieldParams.D"):
+        FieldParams(D=0.0)
+    with pytest.raises(ValueError, match="FieldParams.a"):
+        FieldParams(a=-1.0)
+    with pytest.raises(ValueError, match="FieldParams.amp"):
+        FieldParams(amp=float("nan"))
+    with pytest.raises(ValueError, match="form"):
+        obstacle_field_gradient(_scene(), jnp.zeros(3), 0.05, 0.75, form="minus2")
