@@ -1,0 +1,539 @@
+"""Trajectory inverse kinematics and scenario validation (thesis 2.7, 3.3.6, 3.4; SPEC section 8).
+
+The IK turns an operational-space :class:`~redman_jax.Reference` into the joint trajectory
+``(q_d, q_dot_d, q_ddot_d)`` the joint-space controller tracks. It runs offline, one sample at a
+time, as **one** ``lax.scan`` over ``k = 0 .. N-1`` with state ``(q_k, q_dot_d[k-1])`` from
+``(q0, 0)``; a batch of scenarios (the 20 seeds of a case) is one ``vmap`` of that scan.
+
+Optimisation-based IK (``method="qp"``, 3.37-3.41 as corrected by SPEC section 8), at sample ``k``:
+
+* task (3.13, 3.38 corrected, E1): with ``e_p = p_d[k] - p(q_k)`` (the sample ``q_k`` was meant to
+  reach) and ``e_o = vec(Q_d[k] (x) Q(q_k)^-1)``::
+
+      x_dot_ref = [ v_d[k] + e_p / ts ;  omega_d[k] + K_r clip(e_o, 0.075) ]   (rot = 1)
+                = [ v_d[k] + e_p / ts ]                                          (rot = 0)
+
+  and ``J_s = [S_t J_v; S_r J_w]`` (rows only, ``S_t = 1``, ``S_r = 0.2``; the reference is not
+  scaled, E7). Orientation switching keeps fixed shapes: the rotational rows are zeroed when
+  ``rot = 0`` (they then contribute nothing to the objective, the pseudo-inverse or its damping);
+* null space (3.41, 3.29-3.32): ``v_ns = alpha (I - J# J_s) h_IK(q_k)``,
+  ``h_IK = q_dot_obs + q_dot_jl`` with the velocity-domain gains (gamma 10, joint limit a = 1 / 50
+  outside, alpha 0.1; E17, U23) from :mod:`redman_jax._nullspace`;
+* objective (3.37): ``u* = argmin |J_s u - x_dot_ref|^2 + w |u|^2``, ``w = 1e-4`` (U6), i.e. the
+  QP ``1/2 u^T (J_s^T J_s + w I) u - (J_s^T x_dot_ref)^T u``;
+* bounds (3.39-3.40 corrected, E16; 40 rad/s^2 [T], 40 m/s^2 for the lift)::
+
+      ub = min(q_dot_d[k-1] + 40 ts, (q_max - q_k) / ts),  lb = max(q_dot_d[k-1] - 40 ts, (q_min - q_k) / ts)
+
+  (unlimited joints, Rz: the acceleration terms only; ``lb > ub``: both set to their mean), applied
+  to the total velocity (U24): ``lb - v_ns <= u <= ub - v_ns``;
+* obstacles (U7): on the ``n_pairs = 16`` closest (point of interest, obstacle) pairs with signed
+  distance ``d_j < 0.3`` m, the linearised constraint
+  ``d_j + ts grad_q d_j . (u + v_ns) >= 0.11`` with ``grad_q d_j = grad_x sdf_j(x_i)^T J_poi,i``;
+* ``q_dot_d[k] = u* + v_ns``, ``q_{k+1} = q_k + ts q_dot_d[k]``,
+  ``q_ddot_d[k] = (q_dot_d[k] - q_dot_d[k-1]) / ts``.
+
+The QP is solved by :func:`redman_jax._qp.solve_qp` (interior point + active-set polish; its primal
+and dual residuals are logged per sample). After the last valid sample ``n - 1`` the state is
+frozen and ``(q_dot_d, q_ddot_d) = 0`` (SPEC section 6: the controller holds ``(q_{N-1}, 0, 0)``),
+so padded samples repeat the final configuration at rest.
+
+For comparison (thesis 2.7.1-2.7.2):
+
+* ``method="pinv"`` (2.42): ``q_dot_d = J_s^+ x_dot_d + alpha (I - J_s^+ J_s) h`` with the
+  Moore-Penrose inverse and the feed-forward ``x_dot_d = [v_d; omega_d]`` only (the thesis's
+  "drift"); ``pinv_feedback=True`` adds the 3.38 error terms.
+* ``method="dls"`` (2.43): a position step toward the next sample,
+  ``dq = J_s^T (J_s J_s^T + lam^2 I)^-1 e_d + ts alpha (I - J# J_s) h``,
+  ``e_d = [p_d[k+1] - p(q_k); S_r-free e_o(Q_d[k+1], Q(q_k))]`` with the adaptive ``lam`` (3.32),
+  ``q_dot_d[k] = dq / ts``.
+
+Neither enforces bounds or obstacle constraints.
+
+Validation (SPEC section 8; the reseed rule is thesis 3.4): an IK trajectory is valid when every
+point of interest keeps at least its link width (0.10 m) from every obstacle at every valid sample,
+every limited joint stays within its limits, the final end-effector position is within 0.10 m of
+the final reference sample, and nothing is NaN. :func:`validated_scenarios` returns, for each
+requested seed, the first valid scenario among ``seed, seed + 1000, seed + 2000, ...``, running
+the IK of all pending seeds of a retry round as one batch.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
+from ._math import clip_norm, quat_error, rot_to_quat
+from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
+from ._obstacles import ObstacleSet, obstacle_distances
+from ._qp import QPSettings, solve_qp
+from ._robot import Arm
+from ._scenario import Reference, Scenario
+
+__all__ = [
+    "IKParams",
+    "IKResult",
+    "ik_reference",
+    "ik_trajectory",
+    "ik_step_qp",
+    "validate_ik",
+    "validated_scenarios",
+    "METHODS",
+]
+
+METHODS = ("qp", "pinv", "dls")
+
+
+def _arr(x):
+    return jnp.asarray(x)
+
+
+class IKParams(eqx.Module):
+    """IK settings (SPEC section 8). Numbers are arrays (never recompile); structure is static.
+
+    * ``w``: Tikhonov weight of 3.37 (1e-4, U6); ``K_r``: orientation gain of 3.38 (40, U5);
+      ``S_t``, ``S_r``: Jacobian row scaling of 3.13 (1, 0.2); ``ori_clip``: 3.15 clip (0.075).
+    * ``acc_limit``: joint acceleration bound of 3.39-3.40 (40 rad/s^2, and m/s^2 for the lift).
+    * ``margin``: obstacle constraint distance (0.11 m); ``activation``: pairs farther than this are
+      not constrained (0.3 m); ``obstacle_rate``: ``xi`` in ``ts grad_q d . q_dot >= -xi (d - margin)``
+      (1: SPEC U7's ``d + ts grad_q d . q_dot >= margin``; ``< 1`` a velocity damper).
+    * ``policy``: null-space gains (:func:`~redman_jax._nullspace.ik_policy_gains`: alpha 0.1,
+      gamma 10, joint limit a 1 / 50, no damping; pseudo-inverse damping 0.1 sigma_min, floor 0.01).
+    * ``ns_speed_limit``: the null-space velocity ``v_ns`` is scaled down (direction kept, so it stays
+      in the null space) to at most this joint speed (2 rad/s; PROPOSAL, ``inf`` disables). The
+      velocity-domain obstacle policy grows like ``1/r^4`` (``|v_ns|`` ~7 rad/s at 0.3 m, 1e3 rad/s at
+      0.1 m); with the bounds shifted by ``v_ns`` (U24) the QP variable ``u`` must then cancel it,
+      and the Tikhonov term ``w |u|^2`` drags the tracking (measured: 5 cm errors and infeasible QPs).
+    * ``goal_tolerance``: final end-effector error for a valid IK (0.10 m); ``limit_tolerance``:
+      allowed joint-limit overshoot in validation (1e-6, above the QP tolerance times ts).
+    * static: ``n_pairs`` (16), ``method`` (``"qp"``, ``"pinv"``, ``"dls"``), ``jac_scaling``
+      (``"rows_only"`` as the thesis, or ``"consistent"``: the rotational reference scaled by
+      ``S_r`` too, E7), ``pinv_feedback`` (add the 3.38 error terms to 2.42), ``qp`` settings.
+    """
+
+    w: Float[Array, ""] = eqx.field(default=1e-4, converter=_arr)
+    K_r: Float[Array, ""] = eqx.field(default=40.0, converter=_arr)
+    S_t: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
+    S_r: Float[Array, ""] = eqx.field(default=0.2, converter=_arr)
+    ori_clip: Float[Array, ""] = eqx.field(default=0.075, converter=_arr)
+    acc_limit: Float[Array, ""] = eqx.field(default=40.0, converter=_arr)
+    margin: Float[Array, ""] = eqx.field(default=0.11, converter=_arr)
+    activation: Float[Array, ""] = eqx.field(default=0.3, converter=_arr)
+    obstacle_rate: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
+    ns_speed_limit: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
+    policy: PolicyGains = eqx.field(default_factory=ik_policy_gains)
+    goal_tolerance: Float[Array, ""] = eqx.field(default=0.10, converter=_arr)
+    limit_tolerance: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
+    n_pairs: int = eqx.field(static=True, default=16)
+    method: str = eqx.field(static=True, default="qp")
+    jac_scaling: str = eqx.field(static=True, default="rows_only")
+    pinv_feedback: bool = eqx.field(static=True, default=False)
+    qp: QPSettings = eqx.field(default_factory=QPSettings)
+
+    def __check_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"IKParams.method: expected one of {METHODS}, got {self.method!r}")
+        if self.jac_scaling not in ("rows_only", "consistent"):
+            raise ValueError(f"IKParams.jac_scaling: expected 'rows_only' or 'consistent', got {self.jac_scaling!r}")
+        if not isinstance(self.n_pairs, int) or self.n_pairs < 1:
+            raise ValueError(f"IKParams.n_pairs: expected a positive int, got {self.n_pairs!r}")
+
+
+class IKResult(eqx.Module):
+    """Joint trajectory and per-sample diagnostics of one IK run (``N`` = reference capacity).
+
+    * ``q``, ``qd``, ``qdd`` ``(N, n)``: ``q_d[k]`` (the configuration at sample k), ``q_dot_d[k]``,
+      ``q_ddot_d[k]``; zero velocity and acceleration from sample ``n_samples - 1`` on.
+    * ``mask`` ``(N,)``, ``n_samples``: valid samples (copied from the reference).
+    * ``ee_error`` ``(N,)``: ``|p_d[k] - p(q_k)|``; ``ori_error`` ``(N,)``: unclipped ``|e_o|`` on
+      ``rot = 1`` samples (0 elsewhere); ``min_distance`` ``(N,)``: smallest point-of-interest
+      signed distance at ``q_k``.
+    * ``qp_primal``, ``qp_dual`` ``(N,)``: QP residuals (infinity norms; 0 for pinv / dls);
+      ``qp_converged`` ``(N,)``; ``qp_iterations`` ``(N,)``; ``n_constrained`` ``(N,)``: obstacle
+      pairs within the activation distance.
+    * ``final_error``: ``|p_d[n-1] - p(q_{n-1})|``.
+    * ``collision_free``, ``within_limits``, ``reached``, ``finite``: the validation criteria;
+      ``valid``: all four.
+    """
+
+    q: Float[Array, "N n"]
+    qd: Float[Array, "N n"]
+    qdd: Float[Array, "N n"]
+    mask: Bool[Array, " N"]
+    n_samples: Int[Array, ""]
+    ee_error: Float[Array, " N"]
+    ori_error: Float[Array, " N"]
+    min_distance: Float[Array, " N"]
+    qp_primal: Float[Array, " N"]
+    qp_dual: Float[Array, " N"]
+    qp_converged: Bool[Array, " N"]
+    qp_iterations: Int[Array, " N"]
+    n_constrained: Int[Array, " N"]
+    final_error: Float[Array, ""]
+    collision_free: Bool[Array, ""]
+    within_limits: Bool[Array, ""]
+    reached: Bool[Array, ""]
+    finite: Bool[Array, ""]
+    valid: Bool[Array, ""]
+
+
+# ----------------------------------------------------------------------------------------------
+# One sample
+
+
+class _Sample(eqx.Module):
+    p: Array
+    v: Array
+    quat: Array
+    omega: Array
+    rot: Array
+    p_next: Array
+    quat_next: Array
+    moving: Array  # k < n_samples - 1: a step is taken
+    valid: Array  # k < n_samples
+    ts: Array
+
+
+def _task(arm: Arm, kin, ref: _Sample, params: IKParams, feedback: bool = True):
+    """Scaled, switched task Jacobian ``J_s`` (6, n), its row mask and ``x_dot_ref`` (3.13, 3.38)."""
+    dtype = kin.ee.dtype
+    J = jacobian_from(kin)
+    p = kin.ee[:3, 3]
+    quat = rot_to_quat(kin.ee[:3, :3])
+    e_p = ref.p - p
+    e_o = quat_error(ref.quat, quat)
+    ts_inv = 1.0 / ref.ts
+    on = ref.rot > 0.5
+    row_mask = jnp.concatenate([jnp.ones(3, bool), jnp.broadcast_to(on, (3,))])
+    scale = jnp.concatenate([jnp.broadcast_to(params.S_t, (3,)), jnp.broadcast_to(params.S_r, (3,))]).astype(dtype)
+    J_s = jnp.where(row_mask[:, None], scale[:, None] * J, 0.0)
+    lin = ref.v + (e_p * ts_inv if feedback else 0.0)
+    ang = ref.omega + (params.K_r * clip_norm(e_o, params.ori_clip) if feedback else 0.0)
+    if params.jac_scaling == "consistent":
+        lin, ang = params.S_t * lin, params.S_r * ang
+    xdot = jnp.where(row_mask, jnp.concatenate([lin, ang]), 0.0)
+    return J_s, row_mask, xdot, e_p, jnp.where(on, e_o, 0.0), p, quat
+
+
+def _bounds(arm: Arm, q, qd_prev, ts, params: IKParams):
+    """Velocity bounds of 3.39-3.40 (corrected, E16); Rz: acceleration only; ``lb > ub`` -> mean."""
+    acc = params.acc_limit * ts
+    ub = qd_prev + acc
+    lb = qd_prev - acc
+    ub = jnp.where(arm.limited, jnp.minimum(ub, (arm.q_max - q) / ts), ub)
+    lb = jnp.where(arm.limited, jnp.maximum(lb, (arm.q_min - q) / ts), lb)
+    bad = lb > ub
+    mid = 0.5 * (lb + ub)
+    return jnp.where(bad, mid, lb), jnp.where(bad, mid, ub)
+
+
+def _policy(arm: Arm, kin, q, obs, pol: PolicyGains, pois=None, poi_jac=None):
+    """``h_IK = q_dot_obs + q_dot_jl`` (3.34, 3.35 with the IK gains; no damping, 3.3.6).
+
+    The joint-limit term is capped at its out-of-range value (``pol.jl_outside``, 50): 3.35 grows
+    like ``(h^2 - u^2)^{-3/2}`` and exceeds that value within ~0.03 rad (revolute) / 0.04 m (lift)
+    of a limit, reaching 1e14 when the QP's position bound puts a joint on its limit; then
+    ``q_dot_d = u + v_ns`` loses every digit of ``u`` (measured: 3 cm end-effector jumps).
+    """
+    h_obs = obstacle_policy(arm, kin, q, obs, pol.gamma, pol.obs_a, pol.obs_D, pois=pois, poi_jac=poi_jac)
+    h_jl = jnp.clip(joint_limit_policy(arm, q, pol.jl_a, pol.jl_outside), -pol.jl_outside, pol.jl_outside)
+    return h_obs + h_jl
+
+
+def _cap(v, limit):
+    """Scale ``v`` so that ``|v|_inf <= limit`` (direction kept)."""
+    big = jnp.max(jnp.abs(v))
+    return v * jnp.where(big > limit, limit / jnp.where(big > limit, big, 1.0), 1.0)
+
+
+def _pair_distances(obs: ObstacleSet, pois):
+    """Signed distances of every point of interest to every obstacle slot, ``(m, K)``."""
+    return jax.vmap(lambda x: obstacle_distances(obs, x))(pois)
+
+
+def _obstacle_rows(obs: ObstacleSet, pois, poi_jac, D, v_ns, ts, params: IKParams):
+    """Linearised collision constraints (U7) on the ``n_pairs`` closest pairs within the activation
+    distance: rows ``A_j = ts grad_q d_j`` and lower bounds ``-xi (d_j - margin) - A_j . v_ns``
+    (``-inf`` for unused rows)."""
+    m, K = D.shape
+    k = min(params.n_pairs, m * K)
+    neg, idx = jax.lax.top_k(-D.reshape(-1), k)
+    d = -neg
+    i_poi, i_obs = idx // K, idx % K
+    grad_x = jax.vmap(lambda x, o: jax.grad(lambda y: obstacle_distances(obs, y)[o])(x))(pois[i_poi], i_obs)
+    grad_q = jnp.einsum("kj,kjn->kn", grad_x, poi_jac[i_poi])
+    A = ts * grad_q
+    on = d < params.activation
+    lo = -params.obstacle_rate * (d - params.margin) - A @ v_ns
+    lo = jnp.where(on, lo, -jnp.inf)
+    A = jnp.where(on[:, None], A, 0.0)
+    return A, lo, on
+
+
+def ik_step_qp(arm: Arm, obs: ObstacleSet, q, qd_prev, ref, params: IKParams):
+    """One optimisation-based IK sample (3.37-3.41, see the module docstring).
+
+    Returns ``(q_dot_d, diagnostics)``. ``ref`` carries ``p, v, quat, omega, rot, ts`` of sample k.
+    """
+    dtype = q.dtype
+    n = arm.n_dof
+    ts = ref.ts
+    kin = kinematics(arm, q)
+    J_s, row_mask, xdot, e_p, e_o, _, _ = _task(arm, kin, ref, params)
+    pol = params.policy
+    J_pinv, _ = damped_pinv(J_s, pol.lam_ratio, pol.lam_floor, row_mask=row_mask)
+    N = nullspace_projector(J_s, J_pinv)
+    pois = poi_positions_from(arm, kin, q)
+    poi_jac = poi_jacobians_from(arm, kin, pois)
+    h = _policy(arm, kin, q, obs, pol, pois, poi_jac)
+    v_ns = _cap(pol.alpha * (N @ h), params.ns_speed_limit)
+    lb, ub = _bounds(arm, q, qd_prev, ts, params)
+    D = _pair_distances(obs, pois)
+    A, lo, on = _obstacle_rows(obs, pois, poi_jac, D, v_ns, ts, params)
+    P = J_s.T @ J_s + params.w * jnp.eye(n, dtype=dtype)
+    c = -(J_s.T @ xdot)
+    hi = jnp.full(lo.shape, jnp.inf, dtype)
+    sol = solve_qp(P, c, A, lo, hi, lb - v_ns, ub - v_ns, params.qp)
+    qd = sol.x + v_ns
+    diag = dict(ee_error=jnp.linalg.norm(e_p), ori_error=jnp.linalg.norm(e_o),
+                min_distance=jnp.min(D), qp_primal=sol.primal_residual, qp_dual=sol.dual_residual,
+                qp_converged=sol.converged, qp_iterations=sol.iterations,
+                n_constrained=jnp.sum(on).astype(jnp.int32))
+    return qd, diag
+
+
+def _step_pinv(arm: Arm, obs, q, qd_prev, ref, params: IKParams):
+    """2.42: ``q_dot_d = J_s^+ x_dot_d + alpha (I - J_s^+ J_s) h`` (Moore-Penrose; tiny floor)."""
+    kin = kinematics(arm, q)
+    J_s, row_mask, xdot, e_p, e_o, _, _ = _task(arm, kin, ref, params, feedback=params.pinv_feedback)
+    pol = params.policy
+    J_plus, _ = damped_pinv(J_s, 0.0, 1e-9, row_mask=row_mask)
+    h = _policy(arm, kin, q, obs, pol)
+    qd = J_plus @ xdot + _cap(pol.alpha * (nullspace_projector(J_s, J_plus) @ h), params.ns_speed_limit)
+    return qd, _simple_diag(arm, obs, kin, q, e_p, e_o)
+
+
+def _step_dls(arm: Arm, obs, q, qd_prev, ref, params: IKParams):
+    """2.43: ``dq = J_s^T (J_s J_s^T + lam^2 I)^-1 e_d + ts alpha (I - J# J_s) h`` toward sample k+1."""
+    kin = kinematics(arm, q)
+    nxt = eqx.tree_at(lambda r: (r.p, r.quat), ref, (ref.p_next, ref.quat_next))
+    J_s, row_mask, _, _, _, p, quat = _task(arm, kin, nxt, params, feedback=False)
+    _, _, _, e_p, e_o, _, _ = _task(arm, kin, ref, params, feedback=False)
+    pol = params.policy
+    J_pinv, _ = damped_pinv(J_s, pol.lam_ratio, pol.lam_floor, row_mask=row_mask)
+    # pose error as a displacement: position, and the rotation vector ~ 2 e_o; scaled like J_s
+    # (the rows of J_s are scaled, so the error must be too, or the rotation overshoots 1 / S_r x)
+    e_d = jnp.concatenate([params.S_t * (ref.p_next - p), params.S_r * 2.0 * quat_error(ref.quat_next, quat)])
+    e_d = jnp.where(row_mask, e_d, 0.0)
+    h = _policy(arm, kin, q, obs, pol)
+    dq = J_pinv @ e_d + ref.ts * _cap(pol.alpha * (nullspace_projector(J_s, J_pinv) @ h), params.ns_speed_limit)
+    return dq / ref.ts, _simple_diag(arm, obs, kin, q, e_p, e_o)
+
+
+def _simple_diag(arm, obs, kin, q, e_p, e_o):
+    pois = poi_positions_from(arm, kin, q)
+    D = _pair_distances(obs, pois)
+    z = jnp.zeros((), q.dtype)
+    return dict(ee_error=jnp.linalg.norm(e_p), ori_error=jnp.linalg.norm(e_o), min_distance=jnp.min(D),
+                qp_primal=z, qp_dual=z, qp_converged=jnp.asarray(True), qp_iterations=jnp.asarray(0, jnp.int32),
+                n_constrained=jnp.asarray(0, jnp.int32))
+
+
+_STEPS = {"qp": ik_step_qp, "pinv": _step_pinv, "dls": _step_dls}
+
+
+# ----------------------------------------------------------------------------------------------
+# The trajectory
+
+
+def _check_reference(arm: Arm, ref: Reference, q0):
+    N = ref.p.shape[-2]
+    for name, shape in (("p", (N, 3)), ("v", (N, 3)), ("quat", (N, 4)), ("omega", (N, 3)), ("rot", (N,)),
+                        ("mask", (N,))):
+        got = tuple(getattr(ref, name).shape)
+        if got != shape:
+            raise ValueError(f"Reference.{name}: expected shape {shape}, got {got}")
+    if N < 2:
+        raise ValueError(f"Reference: needs at least 2 samples of capacity, got {N}")
+    if q0 is not None and tuple(jnp.shape(q0)) != (arm.n_dof,):
+        raise ValueError(f"q0: expected shape ({arm.n_dof},), got {tuple(jnp.shape(q0))}")
+
+
+def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams) -> IKResult:
+    dtype = jnp.result_type(ref.p.dtype, arm.q0.dtype)
+    N = ref.p.shape[0]
+    n_s = jnp.clip(ref.n_samples, 1, N)
+    k = jnp.arange(N)
+    nxt = jnp.minimum(k + 1, n_s - 1)
+    ts = jnp.asarray(ref.ts, dtype)
+    xs = _Sample(p=ref.p.astype(dtype), v=ref.v.astype(dtype), quat=ref.quat.astype(dtype),
+                   omega=ref.omega.astype(dtype), rot=ref.rot.astype(dtype),
+                   p_next=ref.p[nxt].astype(dtype), quat_next=ref.quat[nxt].astype(dtype),
+                   moving=k < n_s - 1, valid=k < n_s, ts=jnp.broadcast_to(ts, (N,)))
+    step_fn = _STEPS[params.method]
+
+    def body(carry, s):
+        q, qd_prev = carry
+        qd, diag = step_fn(arm, obs, q, qd_prev, s, params)
+        qd = jnp.where(s.moving, qd, 0.0)
+        qdd = jnp.where(s.moving, (qd - qd_prev) / s.ts, 0.0)
+        q_next = q + s.ts * qd
+        return (q_next, qd), (q, qd, qdd, diag)
+
+    q0 = (arm.q0 if q0 is None else jnp.asarray(q0)).astype(dtype)
+    _, (q, qd, qdd, diag) = jax.lax.scan(body, (q0, jnp.zeros_like(q0)), xs)
+    valid_s = xs.valid
+    zero_f = lambda x: jnp.where(valid_s, x, 0.0)
+    last = n_s - 1
+    final_error = jnp.linalg.norm(ref.p[last].astype(dtype) - _ee(arm, q[last]))
+    res = IKResult(
+        q=q, qd=qd, qdd=qdd, mask=valid_s, n_samples=n_s,
+        ee_error=zero_f(diag["ee_error"]), ori_error=zero_f(diag["ori_error"]),
+        min_distance=jnp.where(valid_s, diag["min_distance"], jnp.inf),
+        qp_primal=zero_f(diag["qp_primal"]), qp_dual=zero_f(diag["qp_dual"]),
+        qp_converged=diag["qp_converged"] | ~valid_s, qp_iterations=diag["qp_iterations"],
+        n_constrained=diag["n_constrained"], final_error=final_error,
+        collision_free=jnp.asarray(False), within_limits=jnp.asarray(False), reached=jnp.asarray(False),
+        finite=jnp.asarray(False), valid=jnp.asarray(False),
+    )
+    checks = _validate_one(arm, obs, ref, res, params)
+    return eqx.tree_at(lambda r: (r.collision_free, r.within_limits, r.reached, r.finite, r.valid), res, checks)
+
+
+def _ee(arm, q):
+    return kinematics(arm, q).ee[:3, 3]
+
+
+def _validate_one(arm: Arm, obs: ObstacleSet, ref: Reference, res: IKResult, params: IKParams):
+    """Independent recomputation of the validation criteria from ``res.q`` (SPEC section 8)."""
+    mask = res.mask
+    finite = (jnp.all(jnp.isfinite(res.q)) & jnp.all(jnp.isfinite(res.qd)) & jnp.all(jnp.isfinite(res.qdd)))
+    q = jnp.where(jnp.isfinite(res.q), res.q, 0.0)
+    pois = jax.vmap(lambda qq: poi_positions(arm, qq))(q)  # (N, m, 3)
+    D = jax.vmap(lambda P: _pair_distances(obs, P))(pois)  # (N, m, K)
+    width = arm.widths[jnp.asarray(poi_link_index(arm))]  # (m,)
+    clear = jnp.all((D >= width[None, :, None]) | ~mask[:, None, None])
+    tol = params.limit_tolerance
+    inside = (q >= arm.q_min - tol) & (q <= arm.q_max + tol)
+    within = jnp.all(inside | ~arm.limited[None, :] | ~mask[:, None])
+    last = res.n_samples - 1
+    err = jnp.linalg.norm(ref.p[last] - _ee(arm, q[last]))
+    reached = err < params.goal_tolerance
+    ok = finite & clear & within & reached
+    return clear & finite, within & finite, reached & finite, finite, ok
+
+
+def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params: IKParams = IKParams(),
+                 q0=None) -> IKResult:
+    """IK of one reference (or a batch: a leading axis on ``reference`` and ``obstacles``).
+
+    **Arguments:** ``arm``; ``reference`` (:class:`~redman_jax.Reference`, ``N`` samples);
+    ``obstacles`` (:class:`~redman_jax.ObstacleSet`); ``params`` (:class:`IKParams`); ``q0``
+    (default ``arm.q0``).
+
+    **Returns:** :class:`IKResult` (batched like the inputs).
+
+    **Raises:** ``ValueError`` naming the field for inconsistent shapes.
+    """
+    batched = reference.p.ndim == 3
+    ref0 = jax.tree.map(lambda x: x[0], reference) if batched else reference
+    _check_reference(arm, ref0, q0)
+    return _ik_jit(arm, reference, obstacles, params, q0, batched)
+
+
+@eqx.filter_jit
+def _ik_jit(arm, reference, obstacles, params, q0, batched):
+    fn = lambda r, o: _ik_single(arm, o, r, q0, params)
+    if batched:
+        return jax.vmap(fn)(reference, obstacles)
+    return fn(reference, obstacles)
+
+
+def ik_trajectory(arm: Arm, scenario: Scenario, params: IKParams = IKParams(), q0=None) -> IKResult:
+    """IK of a :class:`~redman_jax.Scenario` (its reference among its obstacles); a stacked batch of
+    scenarios is solved as one ``vmap`` (one compiled scan for all seeds). See :func:`ik_reference`."""
+    return ik_reference(arm, scenario.reference, scenario.obstacles, params, q0)
+
+
+def validate_ik(arm: Arm, scenario: Scenario, ik_result: IKResult, params: IKParams = IKParams()):
+    """Validation of an IK trajectory (SPEC section 8): ``True`` where no point of interest comes
+    within its link width (0.10 m) of an obstacle at any valid sample, every limited joint stays
+    within its limits (up to ``params.limit_tolerance``), the final end-effector position is within
+    ``params.goal_tolerance`` of the last reference sample and nothing is NaN. Recomputed from
+    ``ik_result.q`` (independent of the IK's own diagnostics). Returns a bool array: shape ``()`` for
+    one scenario, ``(B,)`` for a batch."""
+    batched = ik_result.q.ndim == 3
+    fn = lambda s, r: _validate_one(arm, s.obstacles, s.reference, r, params)[-1]
+    return _validate_jit(fn, scenario, ik_result, batched)
+
+
+@eqx.filter_jit
+def _validate_jit(fn, scenario, ik_result, batched):
+    return jax.vmap(fn)(scenario, ik_result) if batched else fn(scenario, ik_result)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenario pipeline with reseeding (thesis 3.4)
+
+
+def _bucket(k: int, full: int) -> int:
+    """Batch size used for ``k`` pending seeds: the next power of two, at most ``full`` (few
+    compilations across retry rounds)."""
+    b = 1
+    while b < k:
+        b *= 2
+    return min(b, full) if full >= k else k
+
+
+def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, params: IKParams = IKParams(),
+                        **case_params):
+    """For each requested seed, the first valid scenario among ``seed, seed + 1000, ...`` (thesis 3.4).
+
+    A candidate is accepted when generation succeeded (``Scenario.valid`` from
+    :func:`redman_jax._cases.make_scenarios`) and its IK trajectory passes :func:`validate_ik`.
+    Every retry round generates the candidates of all pending seeds and runs their IK as one batch
+    (padded to a power of two, so the rounds reuse a few compilations).
+
+    **Returns:** ``(scenarios, ik_results)`` stacked in the order of ``seeds``; ``scenario.seed`` is
+    the requested seed, ``seed_used`` the one that produced it and ``valid`` whether one was found
+    within ``max_retries`` retries (if not, the last candidate is returned with ``valid = False``).
+    """
+    from ._cases import make_scenarios
+
+    seeds = [int(s) for s in np.atleast_1d(np.asarray(seeds))]
+    if not seeds:
+        raise ValueError("validated_scenarios: seeds is empty")
+    if max_retries < 0:
+        raise ValueError(f"validated_scenarios: max_retries must be >= 0, got {max_retries}")
+    B = len(seeds)
+    found_scen: list = [None] * B
+    found_ik: list = [None] * B
+    pending = list(range(B))
+    for attempt in range(max_retries + 1):
+        if not pending:
+            break
+        cand_seeds = [seeds[i] + 1000 * attempt for i in pending]
+        size = _bucket(len(pending), B)
+        padded = cand_seeds + [cand_seeds[-1]] * (size - len(cand_seeds))
+        scen = make_scenarios(case, padded, arm, **case_params)
+        res = ik_trajectory(arm, scen, params)
+        ok = np.asarray(validate_ik(arm, scen, res, params)) & np.asarray(scen.valid)
+        still = []
+        for j, i in enumerate(pending):
+            take = lambda t: jax.tree.map(lambda x: x[j], t)
+            if ok[j] or attempt == max_retries:
+                found_scen[i] = take(scen)
+                found_ik[i] = take(res)
+                found_scen[i] = eqx.tree_at(
+                    lambda s: (s.seed, s.seed_used, s.valid), found_scen[i],
+                    (jnp.asarray(seeds[i], found_scen[i].seed.dtype),
+                     jnp.asarray(cand_seeds[j], found_scen[i].seed_used.dtype), jnp.asarray(bool(ok[j]))))
+            else:
+                still.append(i)
+        pending = still
+    stack = lambda items: jax.tree.map(lambda *xs: jnp.stack(xs), *items)
+    return stack(found_scen), stack(found_ik)
