@@ -1517,7 +1517,7 @@ def _hook_perfect_controller(d: StudyData, path: Path):
     if buf.size:
         ax.scatter(buf[:, 0], buf[:, 1], buf[:, 2], s=20, color="c", depthshade=False, zorder=11,
                    label="active virtual obstacles")
-    ax.legend(loc="upper left", fontsize=7)
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=7)
     return _save(fig, path)
 
 
@@ -1547,7 +1547,7 @@ def _hook_gradient_path(d: StudyData, path: Path):
         if e.size:
             ax.scatter(e[:, 0], e[:, 1], e[:, 2], s=10, color="c", depthshade=False, zorder=11,
                        label="virtual obstacles")
-    ax.legend(loc="upper left", fontsize=7)
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=7)
     return _save(fig, path)
 
 
@@ -1597,7 +1597,7 @@ def _hook_within_sample(d: StudyData, path: Path):
     ax.set_xlabel("time [s]")
     ax.set_ylabel("position error [mm]")
     ax.set_title(f"Error between samples, agriculture, velocity OSC ({label}, seed {int(np.asarray(sc.seed))})")
-    ax.legend(loc="upper right")
+    fig.legend(loc="outside lower center", ncols=2)
     _save(fig, path)
     ok_ = frac >= ALMOST_ALL if math.isfinite(frac) else None
     return {"R8": (_v(ok_), f"error falls within {100 * frac:.0f} % of {count} samples",
