@@ -158,7 +158,10 @@ def test_make_report_end_to_end(tmp_path, monkeypatch):
     hooks = (FigureSpec("fig4_3_within_sample.png", "4.3", "within", good_hook),
              FigureSpec("fig3_2_cases.png", "3.2", "cases", bad_hook))
     monkeypatch.setattr(report_mod, "HOOKS", hooks)
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / "fig3_2_cases.png").write_bytes(b"stale")  # from an earlier run
     report = make_report(tmp_path)
+    assert not (tmp_path / "figures" / "fig3_2_cases.png").exists()
     text = report.read_text()
     for spec in FIGURES + hooks[:1]:
         assert _is_png(tmp_path / "figures" / spec.file), spec.file

@@ -1048,7 +1048,7 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def _bars(ax, groups, series, *, width=0.8, log=False, hatch_series=None):
+def _bars(ax, groups, series, *, width=0.8, log=False):
     """Grouped bars: ``series`` = [(label, values(len(groups)), color, hatch)]; NaNs are skipped."""
     k = max(len(series), 1)
     w = width / k
@@ -1070,6 +1070,9 @@ def _fig_tracking(d: StudyData, path: Path, attr: str, ylabel: str, scale: float
     ctrls = d.trajectory_controllers
     if not ctrls:
         raise _NotGenerated("no trajectory-tracking controllers in the study")
+    if not any(math.isfinite(getattr(d.cell(a, case, c), attr)) for a in d.arms for case in d.cases for c in ctrls
+               if d.cell(a, case, c)):
+        raise _NotGenerated(f"no {'orientation' if attr == 'ori_err' else 'position'} errors of successful runs")
     fig, axes = _new_figure(len(d.arms), sharey=True)
     for ax, a in zip(axes[0], d.arms):
         series = []
@@ -1440,16 +1443,12 @@ def _stored_scenario(d: StudyData, label: str, case: str, seed: int | None = Non
     return arm_from_spec(_arm_spec(d, label)), sc, ik, i
 
 
-def _scene_arm(d: StudyData) -> str:
-    return _timing_arm(d)
-
-
 def _hook_scenarios(d: StudyData, path: Path):
     """Fig. 3.2: one example scene per case (9-DOF arm at q0) with its reference."""
     from matplotlib.figure import Figure
 
     plot_scenario = _attr("redman_jax._plots", "plot_scenario")
-    label = _scene_arm(d)
+    label = _timing_arm(d)
     fig = Figure(figsize=(3.4 * len(d.cases), 3.6), layout="constrained")
     drawn = 0
     for j, case in enumerate(d.cases):
@@ -1473,7 +1472,7 @@ def _hook_field_slice(case: str, prefer_failed_gradient: bool = False):
         from matplotlib.figure import Figure
 
         plot_field_slice = _attr("redman_jax._plots", "plot_field_slice")
-        label = _scene_arm(d)
+        label = _timing_arm(d)
         seed = None
         if prefer_failed_gradient:  # a run where the gradient-guided controller missed the goal
             failed = [r for r in d.select(label, case, "gradient") if run_cause(r) == "not reached"]
@@ -1501,7 +1500,7 @@ def _hook_perfect_controller(d: StudyData, path: Path):
 
     plot_scenario = _attr("redman_jax._plots", "plot_scenario")
     perfect_controller = _attr("redman_jax._guidance", "perfect_controller")
-    label = _scene_arm(d)
+    label = _timing_arm(d)
     _, sc, _, _ = _stored_scenario(d, label, "simple")
     res = perfect_controller(np.asarray(sc.reference.p)[0], np.asarray(sc.goal_p), sc.obstacles)
     n = int(np.asarray(res.termination.n_samples))
@@ -1527,7 +1526,7 @@ def _hook_gradient_path(d: StudyData, path: Path):
     from matplotlib.figure import Figure
 
     plot_scenario = _attr("redman_jax._plots", "plot_scenario")
-    label = _scene_arm(d)
+    label = _timing_arm(d)
     tr = d.traces(label, "simple", "gradient")
     if not tr or "p" not in tr or "seed" not in tr:
         raise _NotGenerated("no gradient-guided traces with positions in the simple case")
@@ -1572,7 +1571,7 @@ def _hook_within_sample(d: StudyData, path: Path):
     controllers = _attr("redman_jax._controllers", "CONTROLLERS")
     from ._pipeline import make_gains
 
-    label = _scene_arm(d)
+    label = _timing_arm(d)
     ok = [r for r in d.select(label, "agriculture", "velocity") if run_cause(r) == "success"]
     if not ok:
         raise _NotGenerated(f"no successful agriculture run with velocity OSC on {label}")
@@ -1631,10 +1630,9 @@ def _render(spec: FigureSpec, d: StudyData, fig_dir: Path) -> tuple[str, str, ob
     try:
         with matplotlib.rc_context(_STYLE):
             res = spec.make(d, path)
-    except _NotGenerated as e:
-        return "missing", str(e), None
     except Exception as e:  # noqa: BLE001 - a broken figure must not lose the report
-        return "missing", f"{type(e).__name__}: {e}", None
+        path.unlink(missing_ok=True)  # never leave a stale figure from an earlier run beside the report
+        return "missing", str(e) if isinstance(e, _NotGenerated) else f"{type(e).__name__}: {e}", None
     if not path.is_file() or path.stat().st_size == 0:
         return "missing", "the figure maker wrote no file", res
     return "ok", "", res
@@ -1822,8 +1820,10 @@ def make_report(out_dir, *, figures: bool = True, hooks: bool = True) -> Path:
     for spec, st, reason in status:
         if st == "ok":
             lines += [f"**Fig. {spec.thesis}** {spec.caption}", "", f"![Fig. {spec.thesis}](figures/{spec.file})", ""]
-        else:
-            lines += [f"* Fig. {spec.thesis} ({spec.file}): not generated ({reason})"]
+    missing = [(spec, reason) for spec, st, reason in status if st != "ok"]
+    if missing:
+        lines += ["### Not generated", ""]
+        lines += [f"* Fig. {spec.thesis} ({spec.file}): not generated ({reason})" for spec, reason in missing]
     lines.append("")
     report = out / "report.md"
     atomic_write_text(report, "\n".join(lines))
