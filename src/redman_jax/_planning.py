@@ -219,7 +219,9 @@ class RRTResult(eqx.Module):
     * ``path`` ``(P, 3)``: start ... goal (``n_path`` valid points, padded with the last one);
     * ``n_path``, ``success``: number of path points and the success flag;
     * ``cost``: path length [m]; ``n_nodes``, ``n_iter``: tree size and iterations used;
-    * ``nodes`` ``(max_nodes, 3)``, ``parent`` ``(max_nodes,)``: the tree (for plots).
+    * ``nodes`` ``(max_nodes, 3)``, ``parent`` ``(max_nodes,)``, ``node_cost`` ``(max_nodes,)``:
+      the tree (first ``n_nodes`` entries; the root is node 0, its own parent) and the
+      cost-to-root of every node.
     """
 
     path: Float[Array, "P 3"]
@@ -230,6 +232,7 @@ class RRTResult(eqx.Module):
     n_iter: Int[Array, ""]
     nodes: Float[Array, "M 3"]
     parent: Int[Array, " M"]
+    node_cost: Float[Array, " M"]
 
 
 class QuarticTrajectory(eqx.Module):
@@ -540,7 +543,7 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
     path = jnp.where(success, path, jnp.broadcast_to(start, path.shape))
     cost = jnp.where(success, st.cost[st.goal_idx], 0.0)
     return RRTResult(path=path, n_path=n_path, success=success, cost=cost, n_nodes=st.n,
-                     n_iter=st.it, nodes=st.nodes.T, parent=st.parent)
+                     n_iter=st.it, nodes=st.nodes.T, parent=st.parent, node_cost=st.cost)
 
 
 _BATCH_MODES = ("map", "vmap")
