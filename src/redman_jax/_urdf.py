@@ -45,7 +45,7 @@ import numpy as np
 
 from ._robot import Arm
 
-__all__ = ["from_urdf", "from_urdf_string", "to_urdf", "rpy_to_matrix", "matrix_to_rpy"]
+__all__ = ["from_urdf", "from_urdf_string", "to_urdf", "rpy_to_matrix", "matrix_to_rpy", "example_robot_data_file"]
 
 _MOVABLE = ("revolute", "continuous", "prismatic")
 _KNOWN = _MOVABLE + ("fixed", "floating", "planar")
@@ -480,3 +480,35 @@ def to_urdf(arm: Arm, *, robot_name: str | None = None, tip_link: str = "ee") ->
     ET.SubElement(joint, "child", link=tip_link)
     ET.indent(robot)
     return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
+
+
+def example_robot_data_file(relative: str) -> str:
+    """Path of a file shipped by the PyPI package ``example-robot-data`` (a test / bench extra).
+
+    ``relative`` is the path below its ``robots`` folder, e.g.
+    ``"panda_description/urdf/panda.urdf"``. Works for the versions that ship a Python module
+    (``example_robot_data.getModelPath``) and for the data-only wheels (6.x, files under
+    ``cmeel.prefix/share/example-robot-data``).
+
+    **Raises:** ``FileNotFoundError`` when the package or the file is missing.
+    """
+    import importlib.metadata as md
+
+    candidates = []
+    try:  # older wheels: a Python module that knows its model path
+        import example_robot_data  # type: ignore[import-not-found]
+
+        candidates.append(os.path.join(example_robot_data.getModelPath(relative), relative))
+    except Exception:
+        pass
+    try:
+        dist = md.distribution("example-robot-data")
+        for f in dist.files or ():
+            if str(f).replace("\\", "/").endswith("robots/" + relative):
+                candidates.append(str(dist.locate_file(f)))
+    except md.PackageNotFoundError:
+        pass
+    for c in candidates:
+        if os.path.isfile(c):
+            return c
+    raise FileNotFoundError(f"example-robot-data file {relative!r} not found (pip install example-robot-data)")

@@ -1,0 +1,195 @@
+"""Speed of kinematics and dynamics: redman-jax (jit(vmap)) against Pinocchio's Python bindings.
+
+For the thesis 9-DOF arm and the Franka Panda (example-robot-data, fingers dropped, tip
+``panda_hand``) it prints the time per state of forward kinematics, the end-effector Jacobian, the
+mass matrix, the bias forces and the forward dynamics at batch sizes 1, 20, 1024 and 16384
+(``jax.jit(jax.vmap(f))``, arm passed as an argument, warm-up, ``block_until_ready``, median of
+repeats), the compile times apart, and Pinocchio's time per call from Python on the same arm and
+states (``forwardKinematics``, ``computeFrameJacobian`` (LOCAL_WORLD_ALIGNED), ``crba``,
+``nonLinearEffects``, ``aba``). Pinocchio gets the 9-DOF arm through ``to_urdf``.
+
+"before" rows time the hot path as first written (same kinematics, CoM-form mass matrix, RNEA
+with 6x6 ``ad`` matrices, LAPACK Cholesky) and the Lagrangian formulation, in the same run.
+
+Run: ``nice .venv/bin/python benchmarks/bench_dynamics.py`` (a few minutes; ``--quick`` for a
+smoke run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+import xml.etree.ElementTree as ET
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import redman_jax  # noqa: F401  (float64)
+from redman_jax._dynamics import (
+    _forward_dynamics_lapack,
+    _mass_matrix_com,
+    _rnea_spatial6,
+    bias_forces,
+    bias_forces_lagrange,
+    forward_dynamics,
+    mass_matrix,
+    mass_matrix_lagrange,
+)
+from redman_jax._kinematics import forward_kinematics, jacobian, kinematics
+from redman_jax._robot import thesis_arm
+from redman_jax._urdf import example_robot_data_file, from_urdf, to_urdf
+
+
+def fd_before(arm, q, qd, tau):
+    """The hot path as first written: CoM-form M, 6x6 RNEA, LAPACK Cholesky."""
+    from jax.scipy.linalg import cho_factor, cho_solve
+
+    kin = kinematics(arm, q)
+    M = _mass_matrix_com(arm, kin)
+    h = _rnea_spatial6(arm, q, qd, jnp.zeros_like(qd), kin=kin)
+    return cho_solve(cho_factor(M, lower=True), tau - h)
+
+
+def fd_lagrange(arm, q, qd, tau):
+    M = mass_matrix_lagrange(arm, q)
+    return jnp.linalg.solve(M, tau - bias_forces_lagrange(arm, q, qd))
+
+
+OURS = {
+    "fk": (lambda a, q, qd, t: forward_kinematics(a, q)),
+    "jacobian": (lambda a, q, qd, t: jacobian(a, q)),
+    "mass_matrix": (lambda a, q, qd, t: mass_matrix(a, q)),
+    "bias_forces": (lambda a, q, qd, t: bias_forces(a, q, qd)),
+    "forward_dyn": (lambda a, q, qd, t: forward_dynamics(a, q, qd, t, limits=False)),
+    "fd before": fd_before,
+    "fd lapack chol": (lambda a, q, qd, t: _forward_dynamics_lapack(a, q, qd, t, limits=False)),
+    "fd lagrange": fd_lagrange,
+}
+PIN_OF = {"fk": "fk", "jacobian": "jacobian", "mass_matrix": "mass_matrix", "bias_forces": "bias_forces",
+          "forward_dyn": "forward_dyn", "fd before": "forward_dyn", "fd lapack chol": "forward_dyn",
+          "fd lagrange": "forward_dyn"}
+
+
+def panda():
+    path = example_robot_data_file("panda_description/urdf/panda.urdf")
+    arm = from_urdf(path, tip_link="panda_hand")
+    root = ET.parse(path).getroot()
+    for el in list(root):  # the same chain for Pinocchio: drop the finger branches
+        if el.tag in ("link", "joint") and "finger" in el.get("name", ""):
+            root.remove(el)
+    return arm, ET.tostring(root, encoding="unicode"), "panda_hand"
+
+
+def thesis9():
+    arm = thesis_arm(9)
+    return arm, to_urdf(arm, tip_link="ee"), "ee"
+
+
+def random_states(arm, B, rng):
+    lo = np.where(np.asarray(arm.limited), np.asarray(arm.q_min), -np.pi)
+    hi = np.where(np.asarray(arm.limited), np.asarray(arm.q_max), np.pi)
+    q = rng.uniform(lo, hi, (B, arm.n_dof))
+    return q, rng.normal(size=(B, arm.n_dof)), rng.normal(size=(B, arm.n_dof))
+
+
+def time_call(fn, min_time, min_rep=5, max_rep=200):
+    ts = []
+    start = time.perf_counter()
+    while len(ts) < min_rep or (time.perf_counter() - start < min_time and len(ts) < max_rep):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def pinocchio_times(xml, tip, qs, vs, taus):
+    import pinocchio as pin
+
+    model = pin.buildModelFromXML(xml)
+    data = model.createData()
+    fid = model.getFrameId(tip)
+    qp = []
+    for q in qs:  # continuous joints are (cos, sin) in Pinocchio
+        parts = [np.array([np.cos(x), np.sin(x)]) if model.joints[j + 1].nq == 2 else np.array([x])
+                 for j, x in enumerate(q)]
+        qp.append(np.concatenate(parts))
+    LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+    calls = {
+        "fk": lambda q, v, t: pin.forwardKinematics(model, data, q),
+        "jacobian": lambda q, v, t: pin.computeFrameJacobian(model, data, q, fid, LWA),
+        "mass_matrix": lambda q, v, t: pin.crba(model, data, q),
+        "bias_forces": lambda q, v, t: pin.nonLinearEffects(model, data, q, v),
+        "forward_dyn": lambda q, v, t: pin.aba(model, data, q, v, t),
+    }
+    out = {}
+    for name, f in calls.items():
+        reps = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for q, v, t in zip(qp, vs, taus):
+                f(q, v, t)
+            reps.append((time.perf_counter() - t0) / len(qp))
+        out[name] = statistics.median(reps)
+    # consistency: same dynamics as ours on the first state (relative difference)
+    return out, model, data, qp
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="batches 1 and 1024, short timings")
+    args = ap.parse_args()
+    batches = [1, 1024] if args.quick else [1, 20, 1024, 16384]
+    min_time = 0.05 if args.quick else 0.3
+
+    import pinocchio as pin
+
+    print("redman-jax dynamics benchmark")
+    print(f"python {platform.python_version()}, jax {jax.__version__}, jaxlib {jax.lib.__version__ if hasattr(jax.lib, '__version__') else ''}"
+          f", numpy {np.__version__}, pinocchio {pin.__version__}")
+    print(f"device {jax.devices()[0]} ({jax.devices()[0].device_kind}), {os.cpu_count()} CPUs visible, "
+          f"{platform.processor() or platform.machine()}, x64={jax.config.jax_enable_x64}")
+    print("times are per state [us]; ours = jit(vmap(f)) with the arm as an argument, median of repeats\n")
+
+    rng = np.random.default_rng(0)
+    summary = []
+    for label, make in (("thesis 9-DOF", thesis9), ("Panda 7-DOF", panda)):
+        arm, xml, tip = make()
+        qs, vs, ts = random_states(arm, max(batches), rng)
+        n_pin = 2000
+        pin_t, model, data, qp = pinocchio_times(xml, tip, qs[:n_pin], vs[:n_pin], ts[:n_pin])
+        # agreement with Pinocchio on one state (a sanity check of the comparison itself)
+        ddq = np.asarray(forward_dynamics(arm, qs[0], vs[0], ts[0], limits=False))
+        ddq_pin = pin.aba(model, data, qp[0], vs[0], ts[0])
+        print(f"== {label} (n = {arm.n_dof}); |ddq - pin.aba| / |pin.aba| = "
+              f"{np.linalg.norm(ddq - ddq_pin) / np.linalg.norm(ddq_pin):.1e}")
+        print(f"{'function':<16}{'batch':>7}{'compile [s]':>13}{'ours [us]':>12}{'pin [us]':>10}{'ours/pin':>10}")
+        for name, f in OURS.items():
+            if name in ("fd lagrange",) and args.quick:
+                continue
+            g = jax.jit(jax.vmap(f, in_axes=(None, 0, 0, 0)))
+            for B in batches:
+                if name == "fd lagrange" and B > 1024:
+                    continue
+                q, qd, tau = (jnp.asarray(x[:B]) for x in (qs, vs, ts))
+                t0 = time.perf_counter()
+                compiled = g.lower(arm, q, qd, tau).compile()
+                t_comp = time.perf_counter() - t0
+                jax.block_until_ready(compiled(arm, q, qd, tau))  # warm-up
+                t = time_call(lambda: compiled(arm, q, qd, tau), min_time) / B
+                p = pin_t[PIN_OF[name]]
+                print(f"{name:<16}{B:>7}{t_comp:>13.2f}{t * 1e6:>12.3f}{p * 1e6:>10.3f}{t / p:>10.2f}")
+                if B == 1024 and name in ("forward_dyn", "fd before"):
+                    summary.append((label, name, t, p, t_comp))
+        print()
+    print("summary at batch 1024 (target: forward dynamics per state <= Pinocchio aba per call):")
+    for label, name, t, p, tc in summary:
+        print(f"  {label:<14}{name:<12} ours {t * 1e6:7.3f} us  pin.aba {p * 1e6:7.3f} us  "
+              f"ratio {t / p:5.2f}  compile {tc:5.2f} s")
+
+
+if __name__ == "__main__":
+    main()
