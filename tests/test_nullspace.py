@@ -1,0 +1,342 @@
+"""Null-space projection and policies (thesis 2.5-2.6, 3.3.4-3.3.5; SPEC section 7).
+
+References are independent: NumPy SVD / eigvalsh / lstsq, the forward dynamics of the exact model,
+``jax.grad`` of the obstacle potential of :mod:`redman_jax._fields`, and finite differences.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import redman_jax as rj
+from redman_jax._fields import obstacle_field_gradient, obstacle_field_potential
+from redman_jax._nullspace import (
+    PolicyGains,
+    damped_pinv,
+    damping_factor,
+    ik_policy_gains,
+    joint_limit_policy,
+    nullspace_policy,
+    nullspace_projector,
+    oblique_projector,
+    obstacle_gradients,
+    obstacle_policy,
+    smallest_eigenvalue,
+    task_priority,
+)
+
+S_ROWS = np.array([1.0, 1.0, 1.0, 0.2, 0.2, 0.2])
+
+
+def _configs(arm, rng, k, spread=1.2):
+    q = np.asarray(arm.q0) + rng.uniform(-spread, spread, (k, arm.n_dof))
+    return np.clip(q, np.asarray(arm.q_min) + 0.05, np.asarray(arm.q_max) - 0.05)
+
+
+_jac = jax.jit(rj.jacobian, static_argnums=())
+
+
+@pytest.fixture(scope="module")
+def arm9():
+    return rj.thesis_arm(9)
+
+
+@pytest.fixture(scope="module")
+def arm7():
+    return rj.thesis_arm(7)
+
+
+def _mixed_obstacles():
+    R1 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    c, s = np.cos(0.5), np.sin(0.5)
+    R2 = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    return rj.make_obstacles(
+        spheres=[(np.eye(3), [0.35, 0.0, 0.9], [0.08]), (np.eye(3), [-0.3, 0.3, 1.2], [0.05])],
+        boxes=[(R1, [0.0, 0.4, 0.7], [0.1, 0.05, 0.2]), (R2, [-0.4, -0.2, 0.5], [0.08, 0.12, 0.1])],
+        cylinders=[(R2, [0.3, -0.35, 1.1], [0.04, 0.25])],
+        capacities=(3, 3, 2),  # one padded slot per family
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# sigma_min without an SVD
+
+
+def test_smallest_eigenvalue_matches_eigvalsh(arm9, arm7, rng):
+    """Laguerre + Rayleigh polish vs LAPACK on the arms' (scaled, 3- and 6-row) Gram matrices."""
+    f = jax.jit(smallest_eigenvalue)
+    for arm in (arm9, arm7):
+        for q in _configs(arm, rng, 6):
+            J = np.asarray(_jac(arm, q))
+            for Js in (S_ROWS[:, None] * J, J[:3], J):
+                G = Js @ Js.T
+                ref = np.linalg.eigvalsh(G)[0]
+                assert abs(float(f(G)) - ref) <= 1e-9 * ref
+    # a (near-)double smallest eigenvalue: Laguerre alone is only linear there; the Rayleigh quotient
+    # is within the gap to the second eigenvalue (its error is quadratic in the vector error)
+    Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    for gap in (0.0, 1e-8, 1e-3):
+        G = Q @ np.diag([1.0, 1.0 + gap, 2.0, 3.0, 4.0, 5.0]) @ Q.T
+        assert 1.0 - 1e-10 <= float(f(G)) <= 1.0 + gap + 1e-7
+
+
+def test_smallest_eigenvalue_derivative(arm9, rng):
+    """d l_min / dq = v^T (dG/dq) v, against central differences through the Jacobian."""
+    q = _configs(arm9, rng, 1)[0]
+
+    def lmin(qq):
+        J = rj.jacobian(arm9, qq) * jnp.asarray(S_ROWS)[:, None]
+        return smallest_eigenvalue(J @ J.T)
+
+    g = jax.jit(jax.grad(lmin))(jnp.asarray(q))
+    f = jax.jit(jax.vmap(lmin))
+    eps = 1e-6
+    E = eps * np.eye(q.size)
+    fd = (np.asarray(f(q + E)) - np.asarray(f(q - E))) / (2 * eps)  # central differences
+    np.testing.assert_allclose(np.asarray(g), fd, atol=1e-7)
+
+
+def test_damping_factor_formula(arm9, rng):
+    """lam = max(0.1 sigma_min, 0.01) with sigma_min from numpy's SVD (3.32), all three methods."""
+    fs = {m: jax.jit(lambda J, m=m: damping_factor(J, method=m)) for m in ("laguerre", "eigvalsh", "svd")}
+    for q in list(_configs(arm9, rng, 6)) + [np.asarray(arm9.q0)]:
+        J = S_ROWS[:, None] * np.asarray(_jac(arm9, q))
+        smin = np.linalg.svd(J, compute_uv=False)[-1]
+        ref = max(0.1 * smin, 0.01)
+        for f in fs.values():
+            assert abs(float(f(J)) - ref) < 1e-12
+
+
+# ----------------------------------------------------------------------------------------------
+# damped pseudo-inverse and projector
+
+
+def test_undamped_projector_annihilates_task(arm9, arm7, rng):
+    """ratio = floor = 0: J# is the Moore-Penrose inverse and J P = 0 to 1e-10 (2.33)."""
+    f = jax.jit(lambda J: damped_pinv(J, 0.0, 0.0))
+    for arm in (arm9, arm7):
+        for q in _configs(arm, rng, 4):
+            J = np.asarray(_jac(arm, q))
+            Jp, lam = f(J)
+            assert float(lam) == 0.0
+            np.testing.assert_allclose(np.asarray(Jp), np.linalg.pinv(J), atol=1e-9)
+            P = np.asarray(nullspace_projector(J, Jp))
+            assert np.max(np.abs(J @ P)) < 1e-10
+            np.testing.assert_allclose(P @ P, P, atol=1e-10)  # a projector
+            np.testing.assert_allclose(P, P.T, atol=1e-10)  # orthogonal
+
+
+def test_damped_leak_bound(arm9, rng):
+    """Damped projector leak (SPEC section 7, "|J_s N h| is about lam-small").
+
+    With J = U diag(s) V^T: J N = J - J J# J = U diag(s lam^2 / (s^2 + lam^2)) V^T, so
+    |J N h| <= max_i s_i lam^2 / (s_i^2 + lam^2) |h| <= lam / 2 |h|, with equality for h along the
+    maximising right singular vector (the bound is tight, so a wrong lam or J# would fail it).
+    """
+    f = jax.jit(lambda J: damped_pinv(J))
+    for q in _configs(arm9, rng, 8):
+        J = S_ROWS[:, None] * np.asarray(_jac(arm9, q))
+        Jp, lam = f(J)
+        lam = float(lam)
+        N = np.asarray(nullspace_projector(J, Jp))
+        U, s, Vt = np.linalg.svd(J, full_matrices=False)
+        leak = s * lam**2 / (s**2 + lam**2)
+        bound = leak.max()
+        assert bound <= lam / 2 + 1e-15
+        for _ in range(5):
+            h = rng.normal(size=arm9.n_dof)
+            assert np.linalg.norm(J @ N @ h) <= bound * np.linalg.norm(h) * (1 + 1e-9)
+        i = np.argmax(leak)
+        np.testing.assert_allclose(np.linalg.norm(J @ N @ Vt[i]), bound, rtol=1e-8)
+
+
+def test_row_mask_equals_explicit_three_rows(arm9, rng):
+    """Orientation off: the 6-row task with zeroed rotational rows gives exactly the 3-row J# and
+    lam (the inactive rows are excluded from sigma_min and contribute nothing)."""
+    f6 = jax.jit(lambda J, m: damped_pinv(J, row_mask=m))
+    f3 = jax.jit(lambda J: damped_pinv(J))
+    mask = jnp.array([True, True, True, False, False, False])
+    for q in _configs(arm9, rng, 6):
+        J = S_ROWS[:, None] * np.asarray(_jac(arm9, q))
+        Jp6, lam6 = f6(J, mask)
+        Jp3, lam3 = f3(J[:3])
+        np.testing.assert_allclose(float(lam6), float(lam3), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(Jp6[:, :3]), np.asarray(Jp3), atol=1e-12)
+        assert np.all(np.asarray(Jp6[:, 3:]) == 0.0)
+
+
+def test_projected_policy_keeps_ee_acceleration(arm9, rng):
+    """Undamped projection: adding M alpha N h to the torques leaves the end-effector acceleration
+    J qdd + J_dot qd unchanged under the exact forward dynamics (no joint limits)."""
+    obs = _mixed_obstacles()
+    gains = PolicyGains()
+
+    @jax.jit
+    def accel_change(q, qd, tau0):
+        kin = rj.kinematics(arm9, q)
+        J = rj.jacobian_from(kin)
+        Jp, _ = damped_pinv(J, 0.0, 0.0)
+        h = nullspace_policy(arm9, kin, q, qd, obs, gains)
+        M = rj.mass_matrix(arm9, q)
+        tau1 = tau0 + M @ (gains.alpha * nullspace_projector(J, Jp) @ h)
+        a0 = J @ rj.forward_dynamics(arm9, q, qd, tau0, limits=False)
+        a1 = J @ rj.forward_dynamics(arm9, q, qd, tau1, limits=False)
+        return a1 - a0, M @ h
+
+    for q in _configs(arm9, rng, 3, spread=0.6):
+        qd = rng.normal(size=9) * 0.3
+        tau0 = rng.normal(size=9) * 20
+        d, Mh = accel_change(q, qd, tau0)
+        assert np.linalg.norm(np.asarray(Mh)) > 1.0  # the policy is not trivially zero
+        assert np.max(np.abs(np.asarray(d))) < 1e-8
+
+
+def test_oblique_projector_identities(arm9, rng):
+    """E11: P_tau J^T = 0, J W^-1 P_tau = 0, J P_v = 0, P_v = P_tau^T; with W = M torques through
+    P_tau cause no end-effector acceleration (exact forward dynamics)."""
+    q = _configs(arm9, rng, 1, spread=0.6)[0]
+    J = np.asarray(_jac(arm9, q))
+    A = rng.normal(size=(9, 9))
+    proj = jax.jit(oblique_projector, static_argnums=2)
+    fd = jax.jit(lambda q, qd, tau: rj.forward_dynamics(arm9, q, qd, tau, limits=False))
+    for W in (A @ A.T + 9 * np.eye(9), np.asarray(jax.jit(rj.mass_matrix)(arm9, q))):
+        Pt = np.asarray(proj(J, W, "torque"))
+        Pv = np.asarray(proj(J, W, "velocity"))
+        Wi = np.linalg.inv(W)
+        assert np.max(np.abs(Pt @ J.T)) < 1e-9
+        assert np.max(np.abs(J @ Wi @ Pt)) < 1e-9
+        assert np.max(np.abs(J @ Pv)) < 1e-9
+        np.testing.assert_allclose(Pv, Pt.T, atol=1e-9)
+        np.testing.assert_allclose(Pt @ Pt, Pt, atol=1e-9)
+        assert np.max(np.abs(J @ Pt)) > 1e-3  # P_tau is not an acceleration-level projector
+    tau0, dtau = rng.normal(size=9) * 10, rng.normal(size=9) * 10
+    qd = rng.normal(size=9) * 0.2
+    a0 = J @ np.asarray(fd(q, qd, tau0))
+    a1 = J @ np.asarray(fd(q, qd, tau0 + Pt @ dtau))
+    assert np.max(np.abs(a1 - a0)) < 1e-9
+
+
+def test_task_priority_against_constrained_least_squares(arm9, rng):
+    """Two-level priority (2.5.3): the primary task holds exactly; the secondary is the least-squares
+    solution within the primary's null space (brute force: null-space basis from numpy's SVD)."""
+    q = _configs(arm9, rng, 1, spread=0.6)[0]
+    J = np.asarray(_jac(arm9, q))
+    J1, J2 = J[:3], np.asarray(jax.jit(rj.poi_jacobians)(arm9, q))[13]  # EE, then an elbow point
+    x1, x2 = rng.normal(size=3), rng.normal(size=3)
+    qd = np.asarray(jax.jit(task_priority)(J1, x1, J2, x2))
+    np.testing.assert_allclose(J1 @ qd, x1, atol=1e-9)
+    # brute force: q = J1^+ x1 + Z y, min |J2 (J1^+ x1 + Z y) - x2|
+    q1 = np.linalg.pinv(J1) @ x1
+    Z = np.linalg.svd(J1)[2][3:].T
+    y = np.linalg.lstsq(J2 @ Z, x2 - J2 @ q1, rcond=None)[0]
+    np.testing.assert_allclose(J2 @ qd, J2 @ (q1 + Z @ y), atol=1e-7)
+
+
+# ----------------------------------------------------------------------------------------------
+# policies
+
+
+def test_fused_obstacle_gradients_match_fields(arm9, rng):
+    """The fused structure-of-arrays evaluation equals the reference vmap of
+    ``_fields.obstacle_field_gradient`` at the POIs, at random points (some inside obstacles, where
+    the clamp of U3 applies) and with padded slots."""
+    obs = _mixed_obstacles()
+    fused = jax.jit(lambda X: obstacle_gradients(obs, X, 0.05, 0.75))
+    ref = jax.jit(lambda X: obstacle_gradients(obs, X, 0.05, 0.75, impl="reference"))
+    X = np.concatenate([rng.uniform([-0.6, -0.6, 0.3], [0.6, 0.6, 1.4], (200, 3)),
+                        np.asarray(rj.poi_positions(arm9, _configs(arm9, rng, 1, 0.6)[0])),
+                        np.array([[0.37, 0.02, 0.93], [0.30, -0.01, 0.88]])])  # inside the sphere
+    a, b = np.asarray(fused(X)), np.asarray(ref(X))
+    scale = np.linalg.norm(b, axis=1, keepdims=True)
+    assert np.all(scale[-2:] > 1e8)  # the clamped magnitude inside an obstacle
+    np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    for i in range(3):
+        x = X[i]
+        np.testing.assert_allclose(np.asarray(obstacle_field_gradient(obs, x, 0.05, 0.75)), b[i],
+                                   rtol=1e-12, atol=1e-14)
+
+
+def test_obstacle_policy_is_potential_descent(arm9, rng):
+    """Point mode (3.34 corrected, E9) equals -gamma d/dq sum_poi V_o(x_poi(q)) (``jax.grad`` through
+    the exact POI positions, the telescoping lift included), and a small step along it increases the
+    smallest POI clearance: the policy pushes away from obstacles."""
+    obs = _mixed_obstacles()
+    gamma, a, D = 1000.0, 0.05, 0.75
+
+    def U(q):
+        pois = rj.poi_positions(arm9, q)
+        return jnp.sum(jax.vmap(lambda x: obstacle_field_potential(obs, x, a, D))(pois))
+
+    pol = jax.jit(lambda q: obstacle_policy(arm9, rj.kinematics(arm9, q), q, obs, gamma, a, D))
+    gU = jax.jit(jax.grad(U))
+    dmin = jax.jit(lambda q: jnp.min(jax.vmap(lambda x: rj.obstacle_distances(obs, x))(rj.poi_positions(arm9, q))))
+    for q in _configs(arm9, rng, 4, spread=0.5):
+        h = np.asarray(pol(q))
+        np.testing.assert_allclose(h, -gamma * np.asarray(gU(q)), rtol=1e-9, atol=1e-9)
+        step = 1e-4 * h / np.linalg.norm(h)
+        assert float(U(q + step)) < float(U(q))
+        assert float(dmin(q + step)) > float(dmin(q))
+
+
+def test_obstacle_policy_link_mode(arm9, rng):
+    """Link mode (the thesis): forces summed per link through the rigid link Jacobian at the segment
+    midpoint; brute force with ``point_jacobian`` per link."""
+    obs = _mixed_obstacles()
+    q = _configs(arm9, rng, 1, spread=0.5)[0]
+    h = np.asarray(obstacle_policy(arm9, rj.kinematics(arm9, q), q, obs, 1000.0, 0.05, 0.75, mode="link"))
+    pois = np.asarray(rj.poi_positions(arm9, q)).reshape(9, 4, 3)
+    f = -1000.0 * np.asarray(obstacle_gradients(obs, pois.reshape(-1, 3), 0.05, 0.75)).reshape(9, 4, 3)
+    ref = np.zeros(9)
+    for i in range(9):
+        mid = pois[i, 1]  # k = 2 of 4 sits at s = 1/2
+        ref += np.asarray(rj.point_jacobian(arm9, q, i, mid)).T @ f[i].sum(0)
+    np.testing.assert_allclose(h, ref, rtol=1e-10, atol=1e-8)
+
+
+def test_joint_limit_policy(arm9):
+    """3.35 as E12 simplifies: -d/dq [a (h^2 - u^2)^(-1/2)] inside, -sign(u) * outside beyond, 0 on
+    unlimited joints; pushes inward; the lift at q = 0.2 gets +447 (SPEC section 7)."""
+    a, out = 100.0, 5000.0
+    q = np.asarray(arm9.q0).copy()
+    v = np.asarray(joint_limit_policy(arm9, q, a, out))
+    lift = list(arm9.prismatic).index(True)
+    np.testing.assert_allclose(v[lift], 100 * 0.4 / (0.36 - 0.16) ** 1.5, rtol=1e-12)  # 447.2
+    limited = np.asarray(arm9.limited)
+    assert np.all(v[~limited] == 0.0)
+
+    def pot(qq):
+        qm = 0.5 * (arm9.q_min + arm9.q_max)
+        hh = 0.5 * (arm9.q_max - arm9.q_min)
+        u = qq - qm
+        return jnp.sum(jnp.where(arm9.limited, a / jnp.sqrt(hh**2 - u**2), 0.0))
+
+    qs = np.asarray(arm9.q_min) + np.array([0.3, 0.1, 0.5, 4.0, 1.0, 0.2, 2.5, 0.05, 1.0]) * 0.5
+    qs = np.where(limited, np.clip(qs, arm9.q_min + 1e-3, arm9.q_max - 1e-3), qs)
+    np.testing.assert_allclose(np.asarray(joint_limit_policy(arm9, qs, a, out)),
+                               -np.asarray(jax.grad(pot)(jnp.asarray(qs))), rtol=1e-10)
+    # pushes inward near and beyond either limit
+    for side, sign in ((arm9.q_min, 1.0), (arm9.q_max, -1.0)):
+        for offset in (0.01, -0.01):
+            qq = np.where(limited, np.asarray(side) + sign * offset, 0.0)
+            vv = np.asarray(joint_limit_policy(arm9, qq, a, out))
+            assert np.all(sign * vv[limited] > 0)
+            if offset < 0:
+                np.testing.assert_allclose(np.abs(vv[limited]), out)
+
+
+def test_policy_gains_defaults():
+    g, ik = PolicyGains(), ik_policy_gains()
+    assert (float(g.gamma), float(g.obs_a), float(g.obs_D), float(g.jl_a), float(g.jl_outside),
+            float(g.damping), float(g.alpha)) == (1000.0, 0.05, 0.75, 100.0, 5000.0, 800.0, 0.1)
+    assert (float(ik.gamma), float(ik.jl_a), float(ik.jl_outside), float(ik.damping)) == (10.0, 1.0, 50.0, 0.0)
+    assert isinstance(PolicyGains(gamma=3).gamma, jax.Array)
+
+
+def test_bad_arguments_raise():
+    with pytest.raises(ValueError, match="method"):
+        damping_factor(jnp.ones((3, 7)), method="qr")
+    with pytest.raises(ValueError, match="level"):
+        oblique_projector(jnp.ones((3, 7)), jnp.eye(7), level="joint")
+    with pytest.raises(ValueError, match="J must be 2-D"):
+        damped_pinv(jnp.ones(7))
