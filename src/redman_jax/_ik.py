@@ -60,6 +60,8 @@ the IK of all pending seeds of a retry round as one batch.
 
 from __future__ import annotations
 
+import collections
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -480,27 +482,30 @@ def _validate_jit(fn, scenario, ik_result, batched):
 # Scenario pipeline with reseeding (thesis 3.4)
 
 
-def _bucket(k: int, full: int) -> int:
-    """Batch size used for ``k`` pending seeds: the next power of two, at most ``full`` (few
-    compilations across retry rounds)."""
-    b = 1
-    while b < k:
-        b *= 2
-    return min(b, full) if full >= k else k
+def _pad_batch(tree, size: int):
+    """Pad a stacked pytree along its leading axis to ``size`` by repeating its last member (a
+    fixed batch size, so every retry round reuses one compilation)."""
+    def pad(x):
+        x = jnp.asarray(x)
+        extra = size - x.shape[0]
+        return x if extra <= 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])
+    return jax.tree.map(pad, tree)
 
 
 def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, params: IKParams = IKParams(),
-                        **case_params):
+                        case_params=None, stats: dict | None = None):
     """For each requested seed, the first valid scenario among ``seed, seed + 1000, ...`` (thesis 3.4).
 
-    A candidate is accepted when generation succeeded (``Scenario.valid`` from
-    :func:`redman_jax._cases.make_scenarios`) and its IK trajectory passes :func:`validate_ik`.
-    Every retry round generates the candidates of all pending seeds and runs their IK as one batch
-    (padded to a power of two, so the rounds reuse a few compilations).
+    A candidate is accepted when its generation (and, for the RRT cases, planning) succeeded and its
+    IK trajectory passes :func:`validate_ik`. The candidates come from
+    :func:`redman_jax._cases.make_scenarios`, which moves a seed on by 1000 on a generation
+    failure and calls back here with every retry round's candidates stacked: the IK of all pending
+    seeds runs as one batch, padded to ``len(seeds)`` so that all rounds share one compilation.
 
     **Returns:** ``(scenarios, ik_results)`` stacked in the order of ``seeds``; ``scenario.seed`` is
-    the requested seed, ``seed_used`` the one that produced it and ``valid`` whether one was found
-    within ``max_retries`` retries (if not, the last candidate is returned with ``valid = False``).
+    the requested seed, ``seed_used`` the seed that produced it, ``valid`` whether one was found
+    within ``max_retries`` moves (if not, the last candidate comes back with ``valid = False``).
+    ``stats`` (a dict), if given, receives the generator's rejection counts.
     """
     from ._cases import make_scenarios
 
@@ -510,30 +515,28 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     if max_retries < 0:
         raise ValueError(f"validated_scenarios: max_retries must be >= 0, got {max_retries}")
     B = len(seeds)
-    found_scen: list = [None] * B
-    found_ik: list = [None] * B
-    pending = list(range(B))
-    for attempt in range(max_retries + 1):
-        if not pending:
-            break
-        cand_seeds = [seeds[i] + 1000 * attempt for i in pending]
-        size = _bucket(len(pending), B)
-        padded = cand_seeds + [cand_seeds[-1]] * (size - len(cand_seeds))
-        scen = make_scenarios(case, padded, arm, **case_params)
-        res = ik_trajectory(arm, scen, params)
-        ok = np.asarray(validate_ik(arm, scen, res, params)) & np.asarray(scen.valid)
-        still = []
-        for j, i in enumerate(pending):
-            take = lambda t: jax.tree.map(lambda x: x[j], t)
-            if ok[j] or attempt == max_retries:
-                found_scen[i] = take(scen)
-                found_ik[i] = take(res)
-                found_scen[i] = eqx.tree_at(
-                    lambda s: (s.seed, s.seed_used, s.valid), found_scen[i],
-                    (jnp.asarray(seeds[i], found_scen[i].seed.dtype),
-                     jnp.asarray(cand_seeds[j], found_scen[i].seed_used.dtype), jnp.asarray(bool(ok[j]))))
-            else:
-                still.append(i)
-        pending = still
-    stack = lambda items: jax.tree.map(lambda *xs: jnp.stack(xs), *items)
-    return stack(found_scen), stack(found_ik)
+    cache: dict = {}
+
+    def run(batch: Scenario):
+        b = int(batch.seed.shape[0])
+        res = ik_trajectory(arm, _pad_batch(batch, B), params)
+        seed, used = np.asarray(batch.seed), np.asarray(batch.seed_used)
+        for j in range(b):
+            cache[(int(seed[j]), int(used[j]))] = jax.tree.map(lambda x, j=j: x[j], res)
+        return res, b
+
+    def validate(batch: Scenario):
+        res, b = run(batch)
+        return np.asarray(res.valid)[:b]
+
+    counts = collections.Counter()
+    scen = make_scenarios(case, seeds, arm, params=case_params, validate=validate, max_retries=max_retries,
+                          stats=counts)
+    if stats is not None:
+        stats.update(counts)
+    keys = list(zip(np.asarray(scen.seed).tolist(), np.asarray(scen.seed_used).tolist()))
+    missing = [j for j, k in enumerate(keys) if k not in cache]
+    if missing:  # e.g. candidates whose generation never succeeded: run their IK for the record
+        run(jax.tree.map(lambda x: x[np.asarray(missing)], scen))
+    results = [cache[k] for k in keys]
+    return scen, jax.tree.map(lambda *xs: jnp.stack(xs), *results)

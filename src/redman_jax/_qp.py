@@ -256,9 +256,14 @@ def _ipm(P, c, rows: _Rows, settings: QPSettings):
 
 
 def _active_set(rows: _Rows, s, z):
+    """Row ``i`` is active when ``z_i / z_scale > s_i / s_scale``: ``s > z`` on the central path
+    (``s_i z_i = mu``), made scale-aware so that duals of size ``|c|`` do not make nearly active rows
+    with small multipliers look active (and the other way round)."""
     m = rows.A.shape[0]
     n = rows.A.shape[1]
-    act = rows.mask & (z > s)
+    z_scale = jnp.maximum(1.0, jnp.max(jnp.where(rows.mask, z, 0.0), initial=0.0))
+    s_scale = jnp.maximum(1.0, jnp.max(jnp.where(rows.mask, jnp.abs(rows.g), 0.0), initial=0.0))
+    act = rows.mask & (z / z_scale > s / s_scale)
     return act[:m], act[m:2 * m], act[2 * m:2 * m + n], act[2 * m + n:]
 
 
