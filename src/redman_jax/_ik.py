@@ -71,6 +71,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
 from ._math import clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
+from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, obstacle_sdf_and_normals
 from ._obstacles import ObstacleSet, obstacle_distances
 from ._qp import QPSettings, solve_qp
 from ._robot import Arm
@@ -114,7 +115,9 @@ class IKParams(eqx.Module):
       allowed joint-limit overshoot in validation (1e-6, above the QP tolerance times ts).
     * static: ``n_pairs`` (16), ``method`` (``"qp"``, ``"pinv"``, ``"dls"``), ``jac_scaling``
       (``"rows_only"`` as the thesis, or ``"consistent"``: the rotational reference scaled by
-      ``S_r`` too, E7), ``pinv_feedback`` (add the 3.38 error terms to 2.42), ``qp`` settings.
+      ``S_r`` too, E7), ``pinv_feedback`` (add the 3.38 error terms to 2.42), ``braking`` (position
+      bounds also limit the speed toward a limit to what the acceleration bound can stop in time;
+      PROPOSAL, default on; off = 3.39-3.40 literally), ``qp`` settings.
     """
 
     w: Float[Array, ""] = eqx.field(default=1e-4, converter=_arr)
@@ -134,6 +137,7 @@ class IKParams(eqx.Module):
     method: str = eqx.field(static=True, default="qp")
     jac_scaling: str = eqx.field(static=True, default="rows_only")
     pinv_feedback: bool = eqx.field(static=True, default=False)
+    braking: bool = eqx.field(static=True, default=True)
     qp: QPSettings = eqx.field(default_factory=QPSettings)
 
     def __check_init__(self):
@@ -153,7 +157,7 @@ class IKResult(eqx.Module):
     * ``mask`` ``(N,)``, ``n_samples``: valid samples (copied from the reference).
     * ``ee_error`` ``(N,)``: ``|p_d[k] - p(q_k)|``; ``ori_error`` ``(N,)``: unclipped ``|e_o|`` on
       ``rot = 1`` samples (0 elsewhere); ``min_distance`` ``(N,)``: smallest point-of-interest
-      signed distance at ``q_k``.
+      signed distance at ``q_k``; ``clearance`` ``(N,)``: smallest ``d - link width`` (< 0: collision).
     * ``qp_primal``, ``qp_dual`` ``(N,)``: QP residuals (infinity norms; 0 for pinv / dls);
       ``qp_converged`` ``(N,)``; ``qp_iterations`` ``(N,)``; ``n_constrained`` ``(N,)``: obstacle
       pairs within the activation distance.
@@ -170,6 +174,7 @@ class IKResult(eqx.Module):
     ee_error: Float[Array, " N"]
     ori_error: Float[Array, " N"]
     min_distance: Float[Array, " N"]
+    clearance: Float[Array, " N"]
     qp_primal: Float[Array, " N"]
     qp_dual: Float[Array, " N"]
     qp_converged: Bool[Array, " N"]
@@ -221,29 +226,61 @@ def _task(arm: Arm, kin, ref: _Sample, params: IKParams, feedback: bool = True):
     return J_s, row_mask, xdot, e_p, jnp.where(on, e_o, 0.0), p, quat
 
 
+def _braking_speed(gap, acc, ts):
+    """Largest speed toward a limit ``gap`` away from which a joint decelerating at ``acc`` (per
+    sample ``acc ts``) still stops before it: ``v ts / 2 + v^2 / (2 acc) <= gap``."""
+    gap = jnp.maximum(gap, 0.0)
+    return acc * (jnp.sqrt(0.25 * ts * ts + 2.0 * gap / acc) - 0.5 * ts)
+
+
 def _bounds(arm: Arm, q, qd_prev, ts, params: IKParams):
-    """Velocity bounds of 3.39-3.40 (corrected, E16); Rz: acceleration only; ``lb > ub`` -> mean."""
+    """Velocity bounds of 3.39-3.40 (corrected, E16); Rz: acceleration only; ``lb > ub`` -> mean.
+
+    With ``params.braking`` the position terms also include the braking speed (PROPOSAL): the
+    one-step terms ``(q_max - q) / ts`` let a joint arrive at a limit faster than the acceleration
+    bound can stop it, ``lb > ub`` at the next sample and the mean then overshoots the limit
+    (measured on warehouse scenes)."""
     acc = params.acc_limit * ts
     ub = qd_prev + acc
     lb = qd_prev - acc
-    ub = jnp.where(arm.limited, jnp.minimum(ub, (arm.q_max - q) / ts), ub)
-    lb = jnp.where(arm.limited, jnp.maximum(lb, (arm.q_min - q) / ts), lb)
+    up = (arm.q_max - q) / ts
+    down = (arm.q_min - q) / ts
+    if params.braking:
+        up = jnp.minimum(up, _braking_speed(arm.q_max - q, params.acc_limit, ts))
+        down = jnp.maximum(down, -_braking_speed(q - arm.q_min, params.acc_limit, ts))
+    ub = jnp.where(arm.limited, jnp.minimum(ub, up), ub)
+    lb = jnp.where(arm.limited, jnp.maximum(lb, down), lb)
     bad = lb > ub
     mid = 0.5 * (lb + ub)
     return jnp.where(bad, mid, lb), jnp.where(bad, mid, ub)
 
 
-def _policy(arm: Arm, kin, q, obs, pol: PolicyGains, pois=None, poi_jac=None):
-    """``h_IK = q_dot_obs + q_dot_jl`` (3.34, 3.35 with the IK gains; no damping, 3.3.6).
+def _policy(arm: Arm, q, D, normals, poi_jac, pol: PolicyGains):
+    """``h_IK = q_dot_obs + q_dot_jl`` (3.34 corrected E9, 3.35; IK gains, no damping, 3.3.6).
+
+    ``q_dot_obs = sum_i J_poi,i^T (-gamma sum_o V_o'(max(d_io, 1e-3)) n_io)`` is evaluated from the
+    distances ``D`` ``(m, K)`` and unit normals ``(m, K, 3)`` the step already has (the same formula
+    as :func:`redman_jax._nullspace.obstacle_policy`, tested equal; it saves a second pass over all
+    (point, obstacle) pairs, the dominant cost with the warehouse's 146 boxes).
 
     The joint-limit term is capped at its out-of-range value (``pol.jl_outside``, 50): 3.35 grows
     like ``(h^2 - u^2)^{-3/2}`` and exceeds that value within ~0.03 rad (revolute) / 0.04 m (lift)
     of a limit, reaching 1e14 when the QP's position bound puts a joint on its limit; then
     ``q_dot_d = u + v_ns`` loses every digit of ``u`` (measured: 3 cm end-effector jumps).
     """
-    h_obs = obstacle_policy(arm, kin, q, obs, pol.gamma, pol.obs_a, pol.obs_D, pois=pois, poi_jac=poi_jac)
+    slope = jnp.where(D <= pol.obs_D, obstacle_potential_dr(jnp.maximum(D, DISTANCE_CLAMP), pol.obs_a, pol.obs_D), 0.0)
+    force = -pol.gamma * jnp.einsum("mk,mkj->mj", slope, normals)
+    h_obs = jnp.einsum("mjn,mj->n", poi_jac, force)
     h_jl = jnp.clip(joint_limit_policy(arm, q, pol.jl_a, pol.jl_outside), -pol.jl_outside, pol.jl_outside)
     return h_obs + h_jl
+
+
+def _geometry(arm: Arm, kin, q, obs: ObstacleSet):
+    """Points of interest, their Jacobians, and distances / unit normals to every obstacle slot."""
+    pois = poi_positions_from(arm, kin, q)
+    poi_jac = poi_jacobians_from(arm, kin, pois)
+    D, normals = jax.vmap(lambda x: obstacle_sdf_and_normals(obs, x))(pois)
+    return pois, poi_jac, D, normals
 
 
 def _cap(v, limit):
@@ -257,16 +294,16 @@ def _pair_distances(obs: ObstacleSet, pois):
     return jax.vmap(lambda x: obstacle_distances(obs, x))(pois)
 
 
-def _obstacle_rows(obs: ObstacleSet, pois, poi_jac, D, v_ns, ts, params: IKParams):
+def _obstacle_rows(D, normals, poi_jac, v_ns, ts, params: IKParams):
     """Linearised collision constraints (U7) on the ``n_pairs`` closest pairs within the activation
-    distance: rows ``A_j = ts grad_q d_j`` and lower bounds ``-xi (d_j - margin) - A_j . v_ns``
-    (``-inf`` for unused rows)."""
+    distance: rows ``A_j = ts grad_q d_j`` (``grad_q d_j = n_j^T J_poi``, ``n_j`` the sdf gradient)
+    and lower bounds ``-xi (d_j - margin) - A_j . v_ns`` (``-inf`` for unused rows)."""
     m, K = D.shape
     k = min(params.n_pairs, m * K)
     neg, idx = jax.lax.top_k(-D.reshape(-1), k)
     d = -neg
-    i_poi, i_obs = idx // K, idx % K
-    grad_x = jax.vmap(lambda x, o: jax.grad(lambda y: obstacle_distances(obs, y)[o])(x))(pois[i_poi], i_obs)
+    i_poi = idx // K
+    grad_x = normals.reshape(m * K, 3)[idx]
     grad_q = jnp.einsum("kj,kjn->kn", grad_x, poi_jac[i_poi])
     A = ts * grad_q
     on = d < params.activation
@@ -289,20 +326,18 @@ def ik_step_qp(arm: Arm, obs: ObstacleSet, q, qd_prev, ref, params: IKParams):
     pol = params.policy
     J_pinv, _ = damped_pinv(J_s, pol.lam_ratio, pol.lam_floor, row_mask=row_mask)
     N = nullspace_projector(J_s, J_pinv)
-    pois = poi_positions_from(arm, kin, q)
-    poi_jac = poi_jacobians_from(arm, kin, pois)
-    h = _policy(arm, kin, q, obs, pol, pois, poi_jac)
+    pois, poi_jac, D, normals = _geometry(arm, kin, q, obs)
+    h = _policy(arm, q, D, normals, poi_jac, pol)
     v_ns = _cap(pol.alpha * (N @ h), params.ns_speed_limit)
     lb, ub = _bounds(arm, q, qd_prev, ts, params)
-    D = _pair_distances(obs, pois)
-    A, lo, on = _obstacle_rows(obs, pois, poi_jac, D, v_ns, ts, params)
+    A, lo, on = _obstacle_rows(D, normals, poi_jac, v_ns, ts, params)
     P = J_s.T @ J_s + params.w * jnp.eye(n, dtype=dtype)
     c = -(J_s.T @ xdot)
     hi = jnp.full(lo.shape, jnp.inf, dtype)
     sol = solve_qp(P, c, A, lo, hi, lb - v_ns, ub - v_ns, params.qp)
     qd = sol.x + v_ns
     diag = dict(ee_error=jnp.linalg.norm(e_p), ori_error=jnp.linalg.norm(e_o),
-                min_distance=jnp.min(D), qp_primal=sol.primal_residual, qp_dual=sol.dual_residual,
+                min_distance=jnp.min(D), clearance=_clearance(arm, D), qp_primal=sol.primal_residual, qp_dual=sol.dual_residual,
                 qp_converged=sol.converged, qp_iterations=sol.iterations,
                 n_constrained=jnp.sum(on).astype(jnp.int32))
     return qd, diag
@@ -314,9 +349,10 @@ def _step_pinv(arm: Arm, obs, q, qd_prev, ref, params: IKParams):
     J_s, row_mask, xdot, e_p, e_o, _, _ = _task(arm, kin, ref, params, feedback=params.pinv_feedback)
     pol = params.policy
     J_plus, _ = damped_pinv(J_s, 0.0, 1e-9, row_mask=row_mask)
-    h = _policy(arm, kin, q, obs, pol)
+    _, poi_jac, D, normals = _geometry(arm, kin, q, obs)
+    h = _policy(arm, q, D, normals, poi_jac, pol)
     qd = J_plus @ xdot + _cap(pol.alpha * (nullspace_projector(J_s, J_plus) @ h), params.ns_speed_limit)
-    return qd, _simple_diag(arm, obs, kin, q, e_p, e_o)
+    return qd, _simple_diag(arm, D, e_p, e_o)
 
 
 def _step_dls(arm: Arm, obs, q, qd_prev, ref, params: IKParams):
@@ -331,16 +367,22 @@ def _step_dls(arm: Arm, obs, q, qd_prev, ref, params: IKParams):
     # (the rows of J_s are scaled, so the error must be too, or the rotation overshoots 1 / S_r x)
     e_d = jnp.concatenate([params.S_t * (ref.p_next - p), params.S_r * 2.0 * quat_error(ref.quat_next, quat)])
     e_d = jnp.where(row_mask, e_d, 0.0)
-    h = _policy(arm, kin, q, obs, pol)
+    _, poi_jac, D, normals = _geometry(arm, kin, q, obs)
+    h = _policy(arm, q, D, normals, poi_jac, pol)
     dq = J_pinv @ e_d + ref.ts * _cap(pol.alpha * (nullspace_projector(J_s, J_pinv) @ h), params.ns_speed_limit)
-    return dq / ref.ts, _simple_diag(arm, obs, kin, q, e_p, e_o)
+    return dq / ref.ts, _simple_diag(arm, D, e_p, e_o)
 
 
-def _simple_diag(arm, obs, kin, q, e_p, e_o):
-    pois = poi_positions_from(arm, kin, q)
-    D = _pair_distances(obs, pois)
-    z = jnp.zeros((), q.dtype)
+def _clearance(arm: Arm, D):
+    """Smallest ``d - width`` over all (point, obstacle) pairs (< 0: a point within its link width)."""
+    width = arm.widths[jnp.asarray(poi_link_index(arm))]
+    return jnp.min(D - width[:, None])
+
+
+def _simple_diag(arm, D, e_p, e_o):
+    z = jnp.zeros((), D.dtype)
     return dict(ee_error=jnp.linalg.norm(e_p), ori_error=jnp.linalg.norm(e_o), min_distance=jnp.min(D),
+                clearance=_clearance(arm, D),
                 qp_primal=z, qp_dual=z, qp_converged=jnp.asarray(True), qp_iterations=jnp.asarray(0, jnp.int32),
                 n_constrained=jnp.asarray(0, jnp.int32))
 
@@ -396,14 +438,22 @@ def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams)
         q=q, qd=qd, qdd=qdd, mask=valid_s, n_samples=n_s,
         ee_error=zero_f(diag["ee_error"]), ori_error=zero_f(diag["ori_error"]),
         min_distance=jnp.where(valid_s, diag["min_distance"], jnp.inf),
+        clearance=jnp.where(valid_s, diag["clearance"], jnp.inf),
         qp_primal=zero_f(diag["qp_primal"]), qp_dual=zero_f(diag["qp_dual"]),
         qp_converged=diag["qp_converged"] | ~valid_s, qp_iterations=diag["qp_iterations"],
         n_constrained=diag["n_constrained"], final_error=final_error,
         collision_free=jnp.asarray(False), within_limits=jnp.asarray(False), reached=jnp.asarray(False),
         finite=jnp.asarray(False), valid=jnp.asarray(False),
     )
-    checks = _validate_one(arm, obs, ref, res, params)
-    return eqx.tree_at(lambda r: (r.collision_free, r.within_limits, r.reached, r.finite, r.valid), res, checks)
+    # validity from the step's own distances at every q_k (validate_ik recomputes independently)
+    finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)) & jnp.all(jnp.isfinite(qdd))
+    clear = jnp.all(jnp.where(valid_s, diag["clearance"] >= 0.0, True)) & finite
+    tol = params.limit_tolerance
+    inside = (q >= arm.q_min - tol) & (q <= arm.q_max + tol)
+    within = jnp.all(inside | ~arm.limited[None, :] | ~valid_s[:, None]) & finite
+    reached = (final_error < params.goal_tolerance) & finite
+    return eqx.tree_at(lambda r: (r.collision_free, r.within_limits, r.reached, r.finite, r.valid), res,
+                       (clear, within, reached, finite, clear & within & reached))
 
 
 def _ee(arm, q):
