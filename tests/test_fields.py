@@ -25,10 +25,9 @@ from redman_jax._fields import (
     obstacle_sdf_and_normals,
     total_gradient,
     total_gradient_batch,
-    total_gradient_points,
     total_hessian,
     total_potential,
-    total_potential_points,
+    total_potential_batch,
     virtual_gradient,
     virtual_potential,
 )
@@ -304,8 +303,9 @@ def test_total_gradient_and_hessian(form, rng):
     for Hi, fdi in zip(H, fd):
         np.testing.assert_allclose(Hi, fdi, rtol=1e-6, atol=1e-6 * np.abs(Hi).max())
         np.testing.assert_allclose(Hi, Hi.T, rtol=1e-12, atol=1e-12 * np.abs(Hi).max())
-    np.testing.assert_allclose(H, _thess_v(xs, goal, obs, vp, vm, params), rtol=1e-10,
-                               atol=1e-10 * np.abs(H).max())
+    if form == "minus":  # one form suffices for jax.hessian through the custom JVP (slow compile)
+        np.testing.assert_allclose(H, _thess_v(xs, goal, obs, vp, vm, params), rtol=1e-10,
+                                   atol=1e-10 * np.abs(H).max())
 
 
 def _empty():
@@ -396,26 +396,23 @@ def test_guidance_velocity_magnitude_and_direction():
     np.testing.assert_allclose(-vv[:2, 0], expect * g_norm / (g_norm + 1e-9), rtol=1e-12)
     np.testing.assert_array_equal(vv[:2, 1:], 0.0)
     assert np.all(vv[2] == 0)
-    jac = jax.jit(jax.jacfwd(guidance_velocity))(goal + 1e-3, goal, empty, vp, vm * False, p)
-    assert np.all(np.isfinite(jac))
 
 
 def test_points_and_scenario_batches(rng):
     obs, goal, vp, vm = _field_inputs()
-    p = FieldParams(form="plus")
+    p = FieldParams()
     xs = jnp.asarray(_outside_points(obs, rng, 5))
-    Vp = jax.jit(total_potential_points)(xs, goal, obs, vp, vm, p)
-    Gp = jax.jit(total_gradient_points)(xs, goal, obs, vp, vm, p)
-    np.testing.assert_allclose(Vp, _tp_v(xs, goal, obs, vp, vm, p), rtol=1e-14)
-    np.testing.assert_allclose(Gp, _tg_v(xs, goal, obs, vp, vm, p), rtol=1e-14)
     # two scenarios with different obstacle counts, stacked (padding to common capacities)
     other = make_obstacles(spheres=[(np.eye(3), [0.0, 0.0, 0.5], [0.1])], capacities=(2, 3, 2))
     stacked = stack_obstacles([obs, other])
     goals = jnp.stack([goal, goal + 0.1])
     G = total_gradient_batch(jnp.stack([xs, xs]), goals, stacked, jnp.stack([vp, vp]),
                              jnp.stack([vm, vm]), p)
-    np.testing.assert_allclose(G[0], Gp, rtol=1e-13)
+    V = total_potential_batch(jnp.stack([xs, xs]), goals, stacked, jnp.stack([vp, vp]),
+                              jnp.stack([vm, vm]), p)
+    np.testing.assert_allclose(G[0], _tg_v(xs, goal, obs, vp, vm, p), rtol=1e-13)
     np.testing.assert_allclose(G[1], _tg_v(xs, goals[1], other, vp, vm, p), rtol=1e-13)
+    np.testing.assert_allclose(V[1], _tp_v(xs, goals[1], other, vp, vm, p), rtol=1e-13)
 
 
 def test_float32_runs():

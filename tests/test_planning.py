@@ -111,7 +111,19 @@ def planned():
     return scenes, obs, start, goal, keys, quat, jax.device_get(out)
 
 
-_clearance = jax.jit(jax.vmap(lambda o, x: jnp.min(obstacle_distances(o, x)), in_axes=(None, 0)))
+_clearance_jit = jax.jit(jax.vmap(lambda o, x: jnp.min(obstacle_distances(o, x)), in_axes=(None, 0)))
+_CHUNK = 8192
+
+
+def _clearance(obs, pts):
+    """Minimum signed distance of every point, in fixed-size chunks (one compilation)."""
+    pts = np.asarray(pts)
+    out = []
+    for k in range(0, len(pts), _CHUNK):
+        chunk = pts[k:k + _CHUNK]
+        pad = np.concatenate([chunk, np.repeat(chunk[-1:], _CHUNK - len(chunk), 0)])
+        out.append(np.asarray(_clearance_jit(obs, jnp.asarray(pad)))[: len(chunk)])
+    return np.concatenate(out)
 
 
 def test_rrt_paths_connect_and_keep_safety_radius(planned):
@@ -132,11 +144,11 @@ def test_rrt_paths_connect_and_keep_safety_radius(planned):
         # between two checked points the clearance can dip by at most edge_res / 2
         t = np.linspace(0, 1, 51)[:, None]
         dense = (path[:-1, None, :] + t[None] * (path[1:] - path[:-1])[:, None, :]).reshape(-1, 3)
-        clear = np.asarray(_clearance(obs, jnp.asarray(dense)))
+        clear = _clearance(obs, dense)
         assert clear.min() >= safety - res_edge / 2, clear.min()
         # every tree node keeps the full safety radius
         nodes = res.nodes[i, : int(res.n_nodes[i])]
-        assert np.asarray(_clearance(obs, jnp.asarray(nodes))).min() >= safety
+        assert _clearance(obs, nodes).min() >= safety
 
 
 def test_planner_failure_is_a_value_not_an_exception(planned):
@@ -244,7 +256,7 @@ def test_smoothing_and_subsampling_against_numpy(rng):
 
 def test_quartic_segments_and_exact_retiming():
     wp = jnp.array([[0.0, 0, 0], [0.2, 0.0, 0.0], [0.3, 0.2, 0.0], [0.3, 0.4, 0.1], [0.0, 0, 0]])
-    traj = quartic_trajectory(wp, 4, 0.5)  # last row is padding
+    traj = jax.jit(quartic_trajectory)(wp, 4, 0.5)  # last row is padding
     T = np.linalg.norm(np.diff(np.asarray(wp[:4]), axis=0), axis=1) / 0.5
     np.testing.assert_allclose(traj.durations[:3], T, rtol=1e-14)
     assert float(traj.durations[3]) == 0.0 and int(traj.n_seg) == 3
@@ -252,19 +264,20 @@ def test_quartic_segments_and_exact_retiming():
     c = np.asarray(traj.coeffs)
     np.testing.assert_allclose(c[1, :, 1], (wp[2] - wp[0]) / (T[0] + T[1]), rtol=1e-13)
     np.testing.assert_allclose(c[2, :, 1], (wp[3] - wp[1]) / (T[1] + T[2]), rtol=1e-13)
-    p_end, v_end, _ = evaluate_trajectory(traj, traj.total_time)
+    p_end, v_end, _ = jax.jit(evaluate_trajectory)(traj, traj.total_time)
     np.testing.assert_allclose(p_end, wp[3], atol=1e-13)
     np.testing.assert_allclose(v_end, 0.0, atol=1e-12)
     np.testing.assert_array_equal(c[0, :, 1:3], 0.0)  # starts at rest, zero acceleration
     # uniform re-timing is exact: p_c(c t) = p(t), v_c = v / c, a_c = a / c^2
-    scaled, k = time_scale(traj, 0.2, 0.3)
+    scaled, k = jax.jit(time_scale)(traj, 0.2, 0.3)
     assert float(k) > 1
-    for t in np.linspace(0, float(traj.total_time), 7):
-        p0, v0, a0 = evaluate_trajectory(traj, t)
-        p1, v1, a1 = evaluate_trajectory(scaled, k * t)
-        np.testing.assert_allclose(p1, p0, atol=1e-13)
-        np.testing.assert_allclose(v1 * k, v0, atol=1e-12)
-        np.testing.assert_allclose(a1 * k**2, a0, atol=1e-10)
+    ev = jax.jit(jax.vmap(evaluate_trajectory, in_axes=(None, 0)))
+    t = jnp.linspace(0, float(traj.total_time), 7)
+    p0, v0, a0 = ev(traj, t)
+    p1, v1, a1 = ev(scaled, k * t)
+    np.testing.assert_allclose(p1, p0, atol=1e-13)
+    np.testing.assert_allclose(v1 * k, v0, atol=1e-12)
+    np.testing.assert_allclose(a1 * k**2, a0, atol=1e-10)
 
 
 def test_determinism_and_batching_modes(planned):
@@ -316,9 +329,25 @@ def test_rrt_star_rewiring_keeps_an_exact_cost_tree(planned):
         t = np.linspace(0, 1, 151)[:, None]
         a, b = nodes[parent[1:]], nodes[1:]
         dense = (a[:, None, :] + t[None] * (b - a)[:, None, :]).reshape(-1, 3)
-        assert np.asarray(_clearance(scenes[i][0], jnp.asarray(dense))).min() >= 0.15 - 0.005
+        assert _clearance(scenes[i][0], dense).min() >= 0.15 - 0.005
     # rewiring shortens the paths on average (deterministic given the keys)
     assert r.cost[:N_OK].mean() < out.rrt.cost[:N_OK].mean()
+
+
+def test_float32_runs():
+    obs, start, goal = _simple_scene(1)
+    f32 = lambda t: jax.tree.map(
+        lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
+    ref, ok = jax.jit(rrt_reference, static_argnums=7)(
+        jax.random.PRNGKey(0), f32(obs), jnp.asarray(start, jnp.float32),
+        jnp.asarray(goal, jnp.float32), jnp.asarray(QUAT, jnp.float32), ROT_RADIUS, TS, CAPACITY,
+        PARAMS)
+    assert bool(ok) and ref.p.dtype == jnp.float32
+    n = int(ref.n_samples)
+    assert np.all(np.isfinite(ref.p)) and np.all(np.isfinite(ref.a))
+    assert np.linalg.norm(ref.v, axis=1).max() <= 1.0 + 1e-2
+    assert np.linalg.norm(ref.a, axis=1).max() <= 2.0 + 1e-2
+    np.testing.assert_allclose(ref.p[n - 1], goal, atol=1e-5)
 
 
 def test_bad_parameters_raise():
