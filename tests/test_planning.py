@@ -6,6 +6,7 @@ the path, NumPy moving averages, Taylor bounds for the sampled derivatives, bit-
 determinism, and the structural invariants of the tree.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -166,9 +167,21 @@ def test_planner_failure_is_a_value_not_an_exception(planned):
 def test_budget_too_small_fails_cleanly():
     scenes, obs, start, goal, keys, _ = _batch()
     # iteration budget (an array: no recompilation) and node budget (static)
+    traces = []
+
+    def counted(keys, obs, start, goal, params):
+        traces.append(1)
+        return jax.vmap(plan_rrt, in_axes=(0, 0, 0, 0, None))(keys, obs, start, goal, params)
+
+    f = eqx.filter_jit(counted)
     tiny_iter = RRTParams(max_iter=5, max_nodes=2048, path_capacity=256)
-    r = plan_rrt_batch(keys, obs, start, goal, tiny_iter)
+    r = f(keys, obs, start, goal, tiny_iter)
     assert not np.any(r.success) and np.all(r.n_iter <= 5)
+    # new numbers (budget, step, tolerance, safety, bias) never recompile: they are arrays
+    other = RRTParams(max_iter=7, step=0.04, goal_tol=0.03, safety=0.12, goal_bias=0.2,
+                      edge_points=PARAMS.edge_points, max_nodes=2048, path_capacity=256)
+    r = f(keys, obs, start, goal, other)
+    assert len(traces) == 1 and not np.any(r.success) and np.all(r.n_iter <= 7)
     tiny_nodes = RRTParams(max_nodes=8, path_capacity=256)
     r = plan_rrt_batch(keys, obs, start, goal, tiny_nodes)
     assert not np.any(r.success) and np.all(r.n_nodes <= 8)

@@ -836,6 +836,8 @@ def plan_reference_batch(keys, obs: ObstacleSet, start_p, goal_p, goal_quat, rot
     params = RRTParams() if params is None else params
     _check_batch(batch)
     capacity = _validate_reference_args(rot_radius, ts, goal_quat, capacity)
+    # numbers as arrays: a new ts or rot_radius never recompiles
+    rot_radius, ts = jnp.asarray(rot_radius, float), jnp.asarray(ts, float)
     return _plan_reference_batch(keys, obs, start_p, goal_p, goal_quat, rot_radius, ts, capacity,
                                  params, batch)
 
