@@ -75,7 +75,7 @@ PIN_OF = {"fk": "fk", "jacobian": "jacobian", "mass_matrix": "mass_matrix", "bia
 
 
 def panda():
-    path = example_robot_data_file("panda_description/urdf/panda.urdf")
+    path = os.environ.get("PANDA_URDF") or example_robot_data_file("panda_description/urdf/panda.urdf")
     arm = from_urdf(path, tip_link="panda_hand")
     root = ET.parse(path).getroot()
     for el in list(root):  # the same chain for Pinocchio: drop the finger branches
@@ -103,10 +103,11 @@ def time_call(fn, min_time, min_rep=5, max_rep=200):
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    return statistics.median(ts), min(ts)
 
 
-def pinocchio_times(xml, tip, qs, vs, taus):
+def pinocchio_setup(xml, tip, qs):
+    """Pinocchio model, data, per-function calls and the states in Pinocchio's coordinates."""
     import pinocchio as pin
 
     model = pin.buildModelFromXML(xml)
@@ -125,48 +126,61 @@ def pinocchio_times(xml, tip, qs, vs, taus):
         "bias_forces": lambda q, v, t: pin.nonLinearEffects(model, data, q, v),
         "forward_dyn": lambda q, v, t: pin.aba(model, data, q, v, t),
     }
-    out = {}
-    for name, f in calls.items():
-        reps = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            for q, v, t in zip(qp, vs, taus):
-                f(q, v, t)
-            reps.append((time.perf_counter() - t0) / len(qp))
-        out[name] = statistics.median(reps)
-    # consistency: same dynamics as ours on the first state (relative difference)
-    return out, model, data, qp
+    return model, data, calls, qp
+
+
+def pinocchio_time(f, qp, vs, taus, reps=7):
+    """(median, min) over ``reps`` loops of the time per call from Python."""
+    out = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for q, v, t in zip(qp, vs, taus):
+            f(q, v, t)
+        out.append((time.perf_counter() - t0) / len(qp))
+    return statistics.median(out), min(out)
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="batches 1 and 1024, short timings")
+    ap.add_argument("--pin-us", default=None,
+                    help="no Pinocchio in this environment (e.g. a GPU machine): print ours only and "
+                         "compare forward dynamics with these aba times per call, 'thesis,panda' in us")
     args = ap.parse_args()
     batches = [1, 1024] if args.quick else [1, 20, 1024, 16384]
     min_time = 0.05 if args.quick else 0.3
 
-    import pinocchio as pin
+    if args.pin_us is None:
+        import pinocchio as pin
+    else:
+        pin = None
+        given = dict(zip(("thesis 9-DOF", "Panda 7-DOF"), (float(x) * 1e-6 for x in args.pin_us.split(","))))
 
     print("redman-jax dynamics benchmark")
     print(f"python {platform.python_version()}, jax {jax.__version__}, jaxlib {jax.lib.__version__ if hasattr(jax.lib, '__version__') else ''}"
-          f", numpy {np.__version__}, pinocchio {pin.__version__}")
+          f", numpy {np.__version__}, pinocchio {pin.__version__ if pin else 'absent (given: ' + args.pin_us + ' us)'}")
     print(f"device {jax.devices()[0]} ({jax.devices()[0].device_kind}), {os.cpu_count()} CPUs visible, "
           f"{platform.processor() or platform.machine()}, x64={jax.config.jax_enable_x64}")
-    print("times are per state [us]; ours = jit(vmap(f)) with the arm as an argument, median of repeats\n")
+    print("times per state [us]; ours = jit(vmap(f)) with the arm as an argument; pin = per call from Python,")
+    print("looped over 500 states, timed right before ours; median and min of repeats (min resists load)\n")
 
     rng = np.random.default_rng(0)
     summary = []
     for label, make in (("thesis 9-DOF", thesis9), ("Panda 7-DOF", panda)):
         arm, xml, tip = make()
         qs, vs, ts = random_states(arm, max(batches), rng)
-        n_pin = 2000
-        pin_t, model, data, qp = pinocchio_times(xml, tip, qs[:n_pin], vs[:n_pin], ts[:n_pin])
-        # agreement with Pinocchio on one state (a sanity check of the comparison itself)
-        ddq = np.asarray(forward_dynamics(arm, qs[0], vs[0], ts[0], limits=False))
-        ddq_pin = pin.aba(model, data, qp[0], vs[0], ts[0])
-        print(f"== {label} (n = {arm.n_dof}); |ddq - pin.aba| / |pin.aba| = "
-              f"{np.linalg.norm(ddq - ddq_pin) / np.linalg.norm(ddq_pin):.1e}")
-        print(f"{'function':<16}{'batch':>7}{'compile [s]':>13}{'ours [us]':>12}{'pin [us]':>10}{'ours/pin':>10}")
+        n_pin = 500
+        if pin is not None:
+            model, data, calls, qp = pinocchio_setup(xml, tip, qs[:n_pin])
+            # agreement with Pinocchio on one state (a sanity check of the comparison itself)
+            ddq = np.asarray(forward_dynamics(arm, qs[0], vs[0], ts[0], limits=False))
+            ddq_pin = pin.aba(model, data, qp[0], vs[0], ts[0])  # same states in Pinocchio's coordinates
+            print(f"== {label} (n = {arm.n_dof}); |ddq - pin.aba| / |pin.aba| = "
+                  f"{np.linalg.norm(ddq - ddq_pin) / np.linalg.norm(ddq_pin):.1e}")
+        else:
+            print(f"== {label} (n = {arm.n_dof}); Pinocchio aba given: {given[label] * 1e6:.3f} us per call")
+        print(f"{'function':<16}{'batch':>7}{'compile [s]':>13}{'ours med':>10}{'pin med':>9}{'ratio':>7}"
+              f"{'ours min':>10}{'pin min':>9}{'ratio':>7}")
         for name, f in OURS.items():
             if name in ("fd lagrange",) and args.quick:
                 continue
@@ -179,16 +193,21 @@ def main():
                 compiled = g.lower(arm, q, qd, tau).compile()
                 t_comp = time.perf_counter() - t0
                 jax.block_until_ready(compiled(arm, q, qd, tau))  # warm-up
-                t = time_call(lambda: compiled(arm, q, qd, tau), min_time) / B
-                p = pin_t[PIN_OF[name]]
-                print(f"{name:<16}{B:>7}{t_comp:>13.2f}{t * 1e6:>12.3f}{p * 1e6:>10.3f}{t / p:>10.2f}")
-                if B == 1024 and name in ("forward_dyn", "fd before"):
-                    summary.append((label, name, t, p, t_comp))
+                # Pinocchio timed right before ours, so both see the same machine load
+                if pin is not None:
+                    p, p_min = pinocchio_time(calls[PIN_OF[name]], qp, vs[:n_pin], ts[:n_pin])
+                else:
+                    p = p_min = given[label] if PIN_OF[name] == "forward_dyn" else float("nan")
+                t, t_min = (x / B for x in time_call(lambda: compiled(arm, q, qd, tau), min_time))
+                print(f"{name:<16}{B:>7}{t_comp:>13.2f}{t * 1e6:>10.3f}{p * 1e6:>9.3f}{t / p:>7.2f}"
+                      f"{t_min * 1e6:>10.3f}{p_min * 1e6:>9.3f}{t_min / p_min:>7.2f}")
+                if B == 1024 and name in ("forward_dyn", "fd before", "fd lapack chol"):
+                    summary.append((label, name, t, p, t_min, p_min, t_comp))
         print()
     print("summary at batch 1024 (target: forward dynamics per state <= Pinocchio aba per call):")
-    for label, name, t, p, tc in summary:
-        print(f"  {label:<14}{name:<12} ours {t * 1e6:7.3f} us  pin.aba {p * 1e6:7.3f} us  "
-              f"ratio {t / p:5.2f}  compile {tc:5.2f} s")
+    for label, name, t, p, t_min, p_min, tc in summary:
+        print(f"  {label:<14}{name:<15} median: ours {t * 1e6:7.3f} us, pin.aba {p * 1e6:7.3f} us, "
+              f"ratio {t / p:5.2f} | min: ratio {t_min / p_min:5.2f} | compile {tc:5.2f} s")
 
 
 if __name__ == "__main__":
