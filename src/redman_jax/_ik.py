@@ -227,9 +227,11 @@ def _task(arm: Arm, kin, ref: _Sample, params: IKParams, feedback: bool = True):
 
 
 def _braking_speed(gap, acc, ts):
-    """Largest speed toward a limit ``gap`` away from which a joint decelerating at ``acc`` (per
-    sample ``acc ts``) still stops before it: ``v ts / 2 + v^2 / (2 acc) <= gap``."""
-    gap = jnp.maximum(gap, 0.0)
+    """Largest speed toward a limit ``gap`` away from which a joint decelerating by ``acc ts`` per
+    sample still stops before it. The distance of the discrete stop ``ts sum_i max(v - i acc ts, 0)``
+    is at most ``v^2 / (2 acc) + v ts / 2 + acc ts^2 / 8`` (maximum over the number of braking
+    samples), so ``v = acc (sqrt(ts^2 / 4 + 2 (gap - acc ts^2 / 8) / acc) - ts / 2)`` is safe."""
+    gap = jnp.maximum(gap - 0.125 * acc * ts * ts, 0.0)
     return acc * (jnp.sqrt(0.25 * ts * ts + 2.0 * gap / acc) - 0.5 * ts)
 
 
