@@ -40,7 +40,8 @@ Controllers (registry :data:`CONTROLLERS`):
   (10, 40, 10, 100; state ``z = q_r``, ``q_r(0) = q(0)``).
 * ``"velocity_original"`` :class:`VelocityOSCOriginal` (2.7-2.11): ``qd_r = J# xd_r + alpha N h_v(q)``
   (velocity-domain policies), ``qdd_r = d qd_r / dt`` exactly (a jvp along ``qd`` and the reference's
-  own rates), ``tau = M qdd_r + c + g + K_qd (qd_r - qd) + K_qp (q_r - q)``.
+  own rates), ``tau = M qdd_r + c + g + K_qd (qd_r - qd) + K_qp (q_r - q)`` (joint feedback weighted
+  by ``M`` by default, see the class).
 * ``"acceleration"`` :class:`AccelerationOSC` (2.15-2.17, 3.16-3.17):
   ``xdd_r = [pdd_d + K_d(pd_d - pd) + K_p e_p; wd_d + K_dr(w_d - w) + K_pr clip(e_o)]``,
   ``qdd_r = J#(xdd_r - J_s_dot qd) + alpha N h``, ``tau = M qdd_r + c + g`` (250, 2000, 31, 100).
@@ -481,10 +482,18 @@ class VelocityOSCOriginal(_OSCOptions):
     :func:`~redman_jax._nullspace.ik_policy_gains`; ``nullspace="velocity"``), ``q_r = int qd_r``
     (state), ``qdd_r = d qd_r/dt`` computed exactly by one forward-mode jvp along ``(qd, reference
     rates)``: ``p_d' = v_d``, ``v_d' = a_d``, ``Q_d' = 1/2 (0, w_d) (x) Q_d``, ``w_d' = wd_d``;
-    ``tau = M qdd_r + c + g + K_qd (qd_r - qd) + K_qp (q_r - q)`` (2.11, torque-level gains).
+    ``tau = M qdd_r + c + g + K_qd (qd_r - qd) + K_qp (q_r - q)`` (2.11, ``joint_gains="torque"``).
+    Default ``joint_gains="inertia"`` (our proposal) weights the joint feedback by ``M``,
+    ``tau = M(qdd_r + K_qd (qd_r - qd) + K_qp (q_r - q)) + c + g``: the literal torque gains act on
+    link inertias from 2e-3 to 10 kg m^2, so ``K_qd = 100`` makes the loop stiff (poles to -5e4 1/s,
+    explicit solvers stall) while the inertia-weighted loop has the same poles on every joint.
     """
 
     nullspace: str = eqx.field(static=True, default="velocity")
+    joint_gains: str = eqx.field(static=True, default="inertia")
+
+    def __check_init__(self):
+        _check_choice("VelocityOSCOriginal", "joint_gains", self.joint_gains, ("inertia", "torque"))
 
     def _nullspace_modes(self):
         return ("velocity", "actuator", "none")
@@ -521,7 +530,11 @@ class VelocityOSCOriginal(_OSCOptions):
         primals = (q, ref.p, ref.v, ref.quat, ref.omega)
         tangents = (qd, ref.v, ref.a, quat_rate, ref.omega_dot)
         qd_r, qdd_r, (kin, J, J_s, m, lam) = jax.jvp(qd_ref, primals, tangents, has_aux=True)
-        tau = rnea(arm, q, qd, qdd_r, kin=kin) + gains.kdq * (qd_r - qd) + gains.kpq * (q_r - q)
+        fb = gains.kdq * (qd_r - qd) + gains.kpq * (q_r - q)
+        if self.joint_gains == "torque":  # 2.11 literally: stiff (K_dq / I_min ~ 5e4 1/s here)
+            tau = rnea(arm, q, qd, qdd_r, kin=kin) + fb
+        else:  # K -> M K: error dynamics e'' + K_dq e' + K_pq e = 0 on every joint
+            tau = rnea(arm, q, qd, qdd_r + fb, kin=kin)
         diag = {"tau_null": jnp.zeros_like(q), "lam": lam}
         if self.nullspace == "actuator":
             fr = _Frame(kin=kin, p=kin.ee[:3, 3], quat=jnp.zeros((4,), q.dtype), J=J, xd=J @ qd)
