@@ -1,0 +1,152 @@
+"""Per-sample compute time of every controller with its null-space policies over 40 obstacles.
+
+Thesis figures (MATLAB, per sample): acceleration 2.6 ms, velocity 2.2 ms, joint space 1.7 ms,
+gradient-guided 2.3 ms (SPEC R1). Target (issue 4): <= 10 us per state at batch 1024.
+
+For each controller: ``jit`` (batch 1) and ``jit(vmap)`` at batch 20 and 1024, warm, with
+``block_until_ready``; compile time separately. A deliberately naive layout of the acceleration OSC
+(separate FK passes for every Jacobian, POI Jacobians by ``jax.jacfwd``, a full SVD for sigma_min, the
+reference per-point vmap of ``_fields.obstacle_field_gradient``, ``M`` and ``c + g`` formed
+explicitly, ``J_dot q_dot`` by a jvp) is timed in the same run as "before".
+
+Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9]``
+(``JAX_PLATFORMS=cpu taskset -c 0,1`` for the 2-core CPU figure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import redman_jax as rj
+from redman_jax._control_types import ControlState, RefSample, make_environment
+from redman_jax._controllers import CONTROLLERS
+from redman_jax._nullspace import obstacle_gradients
+
+THESIS_MS = {"acceleration": 2.6, "velocity": 2.2, "joint_space": 1.7, "gradient": 2.3}
+
+
+def scene(rng):
+    """40 obstacles: 12 spheres, 16 boxes, 12 cylinders, random poses around the arm."""
+
+    def rot():
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        return Q * np.sign(np.linalg.det(Q))
+
+    def pos():
+        while True:
+            p = rng.uniform([-1, -1, 0], [1, 1, 2])
+            if np.hypot(p[0], p[1]) > 0.45:
+                return p
+
+    sph = [(rot(), pos(), [rng.uniform(0.05, 0.1)]) for _ in range(12)]
+    box = [(rot(), pos(), rng.uniform(0.05, 0.15, 3)) for _ in range(16)]
+    cyl = [(rot(), pos(), [rng.uniform(0.03, 0.08), rng.uniform(0.1, 0.3)]) for _ in range(12)]
+    return rj.make_obstacles(sph, box, cyl)
+
+
+def naive_acceleration(arm, obs):
+    """The straightforward layout ("before")."""
+    from redman_jax._kinematics import poi_positions
+
+    def ctrl(gains, state, ref):
+        q, qd = state.q, state.qd
+        J = rj.jacobian(arm, q)
+        p, quat = rj.end_effector_pose(arm, q)
+        Jdqd = rj.jdot_qdot(arm, q, qd)
+        M = rj.mass_matrix(arm, q)
+        bias = rj.bias_forces(arm, q, qd)
+        S = jnp.array([1, 1, 1, 0.2, 0.2, 0.2])
+        Js = S[:, None] * J
+        smin = jnp.linalg.svd(Js, compute_uv=False)[-1]
+        lam = jnp.maximum(0.1 * smin, 0.01)
+        Jp = Js.T @ jnp.linalg.inv(Js @ Js.T + lam**2 * jnp.eye(6))
+        e_o = rj._math.clip_norm(rj._math.quat_error(ref.quat, quat), 0.075)
+        xdd = jnp.concatenate([ref.a + 31 * (ref.v - J[:3] @ qd) + 250 * (ref.p - p),
+                               ref.omega_dot + 100 * (ref.omega - J[3:] @ qd) + 2000 * e_o])
+        pois = poi_positions(arm, q)
+        Jpoi = jax.jacfwd(lambda qq: poi_positions(arm, qq))(q)  # (m, 3, n)
+        g = obstacle_gradients(obs, pois, 0.05, 0.75, impl="reference")
+        h = jnp.einsum("mjn,mj->n", Jpoi, -1000.0 * g)
+        from redman_jax._nullspace import joint_limit_policy
+
+        h = h + joint_limit_policy(arm, q, 100.0, 5000.0) - 800.0 * qd
+        qdd = Jp @ (xdd - S * Jdqd) + 0.1 * (jnp.eye(arm.n_dof) - Jp @ Js) @ h
+        return M @ qdd + bias
+
+    return ctrl
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--batches", default="1,20,1024")
+    ap.add_argument("--dof", type=int, default=9)
+    ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient,pid,velocity_original,impedance")
+    ap.add_argument("--calls", type=int, default=2048, help="states evaluated per timing (>= 5 calls)")
+    args = ap.parse_args()
+    print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
+          f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}")
+    rng = np.random.default_rng(0)
+    arm = rj.thesis_arm(args.dof)
+    n = arm.n_dof
+    obs = scene(rng)
+    bmax = max(int(b) for b in args.batches.split(","))
+    qs = jnp.asarray(np.asarray(arm.q0) + rng.uniform(-0.3, 0.3, (bmax, n)))
+    qds = jnp.asarray(rng.normal(size=(bmax, n)) * 0.1)
+    p, quat = jax.vmap(lambda q: rj.end_effector_pose(arm, q))(qs)
+    env = make_environment(obs, p[0] + 0.3, quat[0])
+    z3 = jnp.zeros((bmax, 3))
+    refs = RefSample(p=p + 0.01, v=z3, a=z3, quat=quat, omega=z3, omega_dot=z3, rot=jnp.ones((bmax,)),
+                     q=qs + 0.01, qd=jnp.zeros_like(qs), qdd=jnp.zeros_like(qs))
+
+    def timed(f, *a, batch):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*a))
+        tc = time.perf_counter() - t0
+        reps = max(5, args.calls // batch)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            r = f(*a)
+        jax.block_until_ready(r)
+        return (time.perf_counter() - t0) / reps / batch * 1e6, tc
+
+    rows = []
+    names = args.controllers.split(",")
+    entries = [(nm, CONTROLLERS[nm]()) for nm in names] + [("acceleration_naive", None)]
+    for name, ctrl in entries:
+        for B in (int(b) for b in args.batches.split(",")):
+            sl = jax.tree.map(lambda x: x[:B], (qs, qds, refs))
+            if ctrl is None:
+                fn = naive_acceleration(arm, obs)
+                gains = None
+                z = jnp.zeros((B, 0))
+                call = lambda g, q, qd, z, ref: fn(g, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=()), ref)
+            else:
+                gains = ctrl.default_gains()
+                z = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(sl[0])
+                z = jnp.zeros((B, 0)) if not jax.tree.leaves(z) else z
+                call = (lambda ctrl: lambda g, q, qd, z, ref: ctrl(
+                    g, arm, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=() if z.shape == (0,) else z),
+                    ref, env).tau)(ctrl)
+            if B == 1:
+                one = jax.tree.map(lambda x: x[0], (sl[0], sl[1], z, sl[2]))
+                f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
+                us, tc = timed(f, gains, *one, batch=1)
+            else:
+                f = jax.jit(jax.vmap(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref)))
+                us, tc = timed(f, sl[0], sl[1], z, sl[2], batch=B)
+            base = THESIS_MS.get(name.replace("_naive", ""))
+            ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
+            rows.append((name, B, us, tc))
+            print(f"{name:20s} batch {B:5d}: {us:9.2f} us/state  (thesis/this {ratio})  compile {tc:5.1f} s",
+                  flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
