@@ -29,7 +29,7 @@ CAP = N_MOVE + 20  # padded capacity shared by every run
 OBS_CAP = (2, 1, 1)
 Q0 = jnp.array([0.0, 0.5, 0.35, -0.3, 0.6, 0.25, 0.5, -0.2, 0.0])  # bent, away from limits
 # the 9-DOF thesis arm started at Q0 (every run uses arm.q0, so all runs share one compilation)
-ARM = eqx.tree_at(lambda a: a.q0, redman_jax.thesis_arm(9))
+ARM = eqx.tree_at(lambda a: a.q0, redman_jax.thesis_arm(9), Q0)
 # The designed obstacle: a sphere of radius 0.04 whose surface is 0.01 m from point of interest 20
 # (link 5) at mid-trajectory of the obstacle-free IK, at least 0.47 m from the end-effector path and
 # 0.155 m from the start configuration (found once by a search over directions around that point).
@@ -265,7 +265,7 @@ def test_validated_scenarios_reseeds(monkeypatch):
 
     monkeypatch.setattr(cases, "make_scenarios", fake_make_scenarios)
     # q0 of the fake scenes is arm.q0 (straight column): use an arm whose q0 is Q0
-    arm = eqx.tree_at(lambda a: a.q0, ARM)
+    arm = ARM
     stats = collections.Counter()
     scen, res = validated_scenarios("custom", [1, 2], arm, max_retries=2, stats=stats)
     assert calls == [2, 1]
