@@ -24,7 +24,7 @@ from jaxtyping import Array, Bool, Float, PyTree
 
 from ._obstacles import ObstacleSet
 
-__all__ = ["ControlState", "RefSample", "Environment", "ControlOutput", "AbstractController"]
+__all__ = ["ControlState", "RefSample", "Environment", "make_environment", "ControlOutput", "AbstractController"]
 
 
 class ControlState(eqx.Module):
