@@ -127,8 +127,11 @@ def test_forward_dynamics_matches_numpy_solve_and_limits():
     q[2], qd[2] = 0.8 * np.pi, 0.3  # Ry beyond +0.75 pi, moving outwards
     q[4], qd[4] = -0.8 * np.pi, 0.3  # Ry below -0.75 pi, moving inwards (no damping)
     c = LimitContact()
-    fd, M, h, tl = jax.jit(lambda q, qd, tau: (forward_dynamics(arm, q, qd, tau, c), mass_matrix(arm, q),
-                                               bias_forces(arm, q, qd), joint_limit_torque(arm, q, qd, c)))(q, qd, tau)
+    x = jnp.concatenate([jnp.asarray(q), jnp.asarray(qd)])
+    fd, M, h, tl, sd, fd_free = jax.jit(lambda q, qd, tau, x: (
+        forward_dynamics(arm, q, qd, tau, c), mass_matrix(arm, q), bias_forces(arm, q, qd),
+        joint_limit_torque(arm, q, qd, c), state_derivative(arm, x, tau),
+        forward_dynamics(arm, q, qd, tau, limits=False)))(q, qd, tau, x)
     M, h, tl = map(np.asarray, (M, h, tl))
     np.testing.assert_allclose(np.asarray(fd), np.linalg.solve(M, tau - h - tl), rtol=1e-10, atol=1e-10)
     # eq. 3.6 by hand: s(qd) = cos(arctan(50 qd) + pi) + 1
@@ -143,13 +146,10 @@ def test_forward_dynamics_matches_numpy_solve_and_limits():
     # the lift below 0 moving down: restoring (negative tau_lim means q_dd > 0 after subtraction)
     q3, qd3 = np.asarray(arm.q0).copy(), np.zeros(9)
     q3[1], qd3[1] = -0.01, -0.2
-    t3 = float(joint_limit_torque(arm, q3, qd3)[1])
+    t3 = float(np.asarray(joint_limit_torque(arm, q3, qd3))[1])
     assert t3 == pytest.approx(1000 * -0.01 + 100 * -0.2 * (1 - 1 / np.sqrt(1 + 2500 * 0.04)), rel=1e-12)
-    x = jnp.concatenate([jnp.asarray(q), jnp.asarray(qd)])
-    np.testing.assert_allclose(np.asarray(state_derivative(arm, x, tau)),
-                               np.concatenate([qd, np.asarray(fd)]), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(forward_dynamics(arm, q, qd, tau, limits=False)),
-                               np.linalg.solve(M, tau - h), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(sd), np.concatenate([qd, np.asarray(fd)]), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(fd_free), np.linalg.solve(M, tau - h), rtol=1e-10, atol=1e-10)
 
 
 def test_cholesky_solve():
@@ -222,7 +222,7 @@ def test_energy_conservation():
 
 def test_float32_smoke():
     with jax.enable_x64(False):
-        arm = thesis_arm(9)
+        arm = thesis_arm(7)
         q, qd, tau = (jnp.asarray(x, jnp.float32) for x in _state(arm, 11))
         qd = 0.1 * qd
 
@@ -239,7 +239,7 @@ def test_float32_smoke():
         for leaf in jax.tree.leaves(outs):
             assert leaf.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(leaf)))
         fd32 = np.asarray(outs[8])
-    arm64 = thesis_arm(9)
+    arm64 = thesis_arm(7)
     fd64 = np.asarray(forward_dynamics(arm64, *(np.asarray(x, np.float64) for x in (q, qd, tau))))
     # float32: M's condition number ~1e3 times eps 1e-7
     np.testing.assert_allclose(fd32, fd64, rtol=1e-3, atol=1e-3 * np.abs(fd64).max())
