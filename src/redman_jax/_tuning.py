@@ -546,7 +546,7 @@ class TuneSettings(eqx.Module):
     reg: Float[Array, ""] = eqx.field(default=1e-3, converter=_arr)
     ratio_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
     torque_weight: Float[Array, ""] = eqx.field(default=10.0, converter=_arr)
-    stop_rtol: Float[Array, ""] = eqx.field(default=0.01, converter=_arr)
+    stop_rtol: Float[Array, ""] = eqx.field(default=0.02, converter=_arr)
     lm_damping: Float[Array, ""] = eqx.field(default=1e-3, converter=_arr)
 
 
