@@ -67,7 +67,7 @@ from jaxtyping import Array, Float
 from ._control_types import AbstractController, ControlOutput, ControlState, Environment, RefSample
 from ._dynamics import dynamics_terms, rnea
 from ._kinematics import Kinematics, jacobian_from, kinematics, poi_jacobians_from, poi_positions_from
-from ._math import clip_norm, quat_error, quat_mul, rot_to_quat
+from ._math import as_float, clip_norm, quat_error, quat_mul, rot_to_quat
 from ._nullspace import (
     PolicyGains,
     damped_solve,
@@ -102,7 +102,7 @@ __all__ = [
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 def _f(default):

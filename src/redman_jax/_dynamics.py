@@ -44,7 +44,7 @@ from jax.scipy.linalg import cho_factor, cho_solve
 from jaxtyping import Array, Float
 
 from ._kinematics import Kinematics, kinematics
-from ._math import ad, skew
+from ._math import ad, as_float, skew
 from ._robot import Arm
 
 __all__ = [
@@ -259,9 +259,9 @@ class LimitContact(eqx.Module):
     recompiles.
     """
 
-    k_p: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1000.0), converter=jnp.asarray)
-    k_d: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(100.0), converter=jnp.asarray)
-    steepness: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(50.0), converter=jnp.asarray)
+    k_p: Float[Array, ""] = eqx.field(default=1000.0, converter=as_float)
+    k_d: Float[Array, ""] = eqx.field(default=100.0, converter=as_float)
+    steepness: Float[Array, ""] = eqx.field(default=50.0, converter=as_float)
 
 
 def joint_limit_torque(arm: Arm, q, qd, contact: LimitContact | None = None) -> Float[Array, " n"]:

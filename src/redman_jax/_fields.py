@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._math import safe_norm
+from ._math import as_float, safe_norm
 from ._obstacles import BIG_DISTANCE, ObstacleSet, Shapes, box_sdf, cylinder_sdf, sphere_sdf
 
 __all__ = [
@@ -309,11 +309,11 @@ class FieldParams(eqx.Module):
     ``"site"``: per-obstacle A, E15) and ``amp_exact`` (differentiate A, U4).
     """
 
-    a: Float[Array, ""] = eqx.field(default=0.0005, converter=jnp.asarray)
-    D: Float[Array, ""] = eqx.field(default=0.5, converter=jnp.asarray)
-    d_v: Float[Array, ""] = eqx.field(default=0.25, converter=jnp.asarray)
-    amp: Float[Array, ""] = eqx.field(default=0.1, converter=jnp.asarray)
-    clamp: Float[Array, ""] = eqx.field(default=DISTANCE_CLAMP, converter=jnp.asarray)
+    a: Float[Array, ""] = eqx.field(default=0.0005, converter=as_float)
+    D: Float[Array, ""] = eqx.field(default=0.5, converter=as_float)
+    d_v: Float[Array, ""] = eqx.field(default=0.25, converter=as_float)
+    amp: Float[Array, ""] = eqx.field(default=0.1, converter=as_float)
+    clamp: Float[Array, ""] = eqx.field(default=DISTANCE_CLAMP, converter=as_float)
     form: str = eqx.field(static=True, default="minus")
     vo_amp: str = eqx.field(static=True, default="ee")
     amp_exact: bool = eqx.field(static=True, default=False)

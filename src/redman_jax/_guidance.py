@@ -30,6 +30,7 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
+from ._math import as_float
 from ._math import safe_norm
 from ._metrics import GuidanceTermination, guidance_termination, path_length
 from ._obstacles import ObstacleSet
@@ -112,7 +113,7 @@ def estimator_update(x, goal_p, obs, buf: VirtualBuffer, params: FieldParams, mu
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 class PerfectParams(eqx.Module):

@@ -69,6 +69,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
+from ._math import as_float
 from ._math import clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, obstacle_sdf_and_normals
@@ -92,7 +93,7 @@ METHODS = ("qp", "pinv", "dls")
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 class IKParams(eqx.Module):

@@ -22,6 +22,7 @@ __all__ = [
     "quat_error",
     "clip_norm",
     "safe_norm",
+    "as_float",
 ]
 
 
@@ -148,3 +149,18 @@ def clip_norm(e: Float[Array, " k"], limit) -> Float[Array, " k"]:
     n = safe_norm(e)
     scale = jnp.where(n > limit, limit / jnp.where(n > limit, n, 1.0), 1.0)
     return e * scale
+
+
+def as_float(x):
+    """A gain or tolerance as a strongly typed array of the default float dtype.
+
+    ``jnp.asarray(1.0)`` is *weakly* typed, so a gains pytree built from Python floats and one
+    built from arrays (a user's, or a tuner's) would compile separately; converting every number
+    with this keeps one compilation. Arrays that already have a floating dtype keep it.
+    """
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.floating) and not x.weak_type:
+        return x
+    if jnp.issubdtype(x.dtype, jnp.bool_):
+        return x
+    return x.astype(jnp.result_type(float))

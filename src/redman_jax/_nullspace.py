@@ -46,6 +46,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+
+from ._math import as_float
 from jaxtyping import Array, Bool, Float
 
 from ._kinematics import Kinematics, poi_jacobians_from, poi_link_index, poi_positions_from
@@ -73,7 +75,7 @@ _LAGUERRE_ITERS = 4
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 class PolicyGains(eqx.Module):

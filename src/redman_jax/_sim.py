@@ -56,6 +56,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
+from ._math import as_float
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -74,7 +75,7 @@ __all__ = ["SimParams", "SimResult", "JointReference", "simulate", "simulate_bat
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 class SimParams(eqx.Module):

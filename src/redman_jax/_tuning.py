@@ -86,6 +86,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
+from ._math import as_float
 from ._control_types import AbstractController, ControlOutput, ControlState
 from ._controllers import CONTROLLERS, make_controller
 from ._kinematics import end_effector_pose, jacobian, kinematics
@@ -160,7 +161,7 @@ inside: JS zeta 1.58, acceleration 0.98, velocity inner 15.8 with ``kdq / kp = 1
 
 
 def _arr(x):
-    return jnp.asarray(x)
+    return as_float(x)
 
 
 # ----------------------------------------------------------------------------------------------
