@@ -1488,9 +1488,13 @@ def _hook_field_slice(case: str, prefer_failed_gradient: bool = False):
 
 
 def _hook_step_responses(d: StudyData, path: Path):
-    """Fig. 3.6: owned by the tuning module."""
-    fn = _attr("redman_jax._tuning", "plot_step_responses")
-    return fn(path=path)
+    """Fig. 3.6: the 0.05 m step responses of the 9-DOF arm (SPEC U28), drawn by the tuning module
+    with the gains the study ran (thesis gains unless ``--gains`` overrode them)."""
+    fn = _attr("redman_jax._tuning", "step_response_figure")
+    from ._robot import thesis_arm
+
+    fn(thesis_arm(9), path, gains_by_controller=d.config.get("gains") or None)
+    return path
 
 
 def _hook_perfect_controller(d: StudyData, path: Path):

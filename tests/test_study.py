@@ -1,0 +1,173 @@
+"""The sweep driver: CLI validation, atomic resumable storage, resume after interruption, sharding.
+
+The pipeline units (build a case, run a controller) are replaced by cheap deterministic fakes here,
+so these tests check the driver's bookkeeping; the real units are exercised by the examples tests.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import zlib
+
+import numpy as np
+import pytest
+
+import redman_jax._pipeline as pipe
+from redman_jax._cli import main, parse_int_list
+from redman_jax._store import UnitStore, atomic_write_text
+from redman_jax._study import SweepConfig, load_runs, run_sweep
+
+
+def test_parse_int_list():
+    assert parse_int_list("1-3,7", "seeds") == (1, 2, 3, 7)
+    assert parse_int_list("5", "seeds") == (5,)
+    for bad in ("a-b", "3-1", ",", "1-"):
+        with pytest.raises(ValueError, match="--seeds"):
+            parse_int_list(bad, "seeds")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["sweep", "--cases", "kitchen"], "--cases"),
+        (["sweep", "--controllers", "magic"], "--controllers"),
+        (["sweep", "--seeds", "x"], "--seeds"),
+        (["sweep", "--arms", "11"], "arms"),
+        (["sweep", "--ts", "-1"], "ts"),
+        (["sweep", "--gains", "/nonexistent/gains.json"], "--gains"),
+    ],
+)
+def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):
+    code = main([*argv, "--out", str(tmp_path / "o")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert message in err and "error" in err
+
+
+def test_cli_help_exits_cleanly():
+    proc = subprocess.run([sys.executable, "-m", "redman_jax", "sweep", "--help"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0
+    for opt in ("--arms", "--cases", "--seeds", "--controllers", "--gains", "--ts", "--out"):
+        assert opt in proc.stdout
+
+
+def test_atomic_store_roundtrip_and_key(tmp_path):
+    store = UnitStore(tmp_path)
+    store.save("u", "k1", {"x": np.arange(3)})
+    assert store.has("u", "k1") and not store.has("u", "k2") and not store.has("v", "k1")
+    np.testing.assert_array_equal(store.load("u")["x"], np.arange(3))
+    store.path("w").write_bytes(b"truncated garbage")  # a torn foreign file is recomputed, not trusted
+    assert not store.has("w", "k1")
+    atomic_write_text(tmp_path / "a.txt", "hello")
+    assert (tmp_path / "a.txt").read_text() == "hello"
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+class _Interrupt(BaseException):
+    pass
+
+
+def _fake_pipeline(monkeypatch, calls, interrupt_after=None):
+    """Deterministic stand-ins for the two pipeline units, counting calls."""
+
+    def build_case(arm, case, seeds, ts=0.01, max_retries=20):
+        calls.append(("scen", case))
+        return {"case": case, "seeds": list(seeds)}
+
+    def run_controller(arm, scen, ctrl, gains=None, **kw):
+        calls.append(("run", scen["case"], ctrl))
+        if interrupt_after is not None and len([c for c in calls if c[0] == "run"]) > interrupt_after:
+            raise _Interrupt()
+        rng = np.random.default_rng(zlib.crc32(f"{scen['case']}-{ctrl}".encode()))
+        rows = [{"case": scen["case"], "seed": s, "seed_used": s, "controller": ctrl, "success": True,
+                 "mean_pos_error": float(rng.random()), "n_samples": 10} for s in scen["seeds"]]
+        return {"rows": rows, "traces": {"seed": np.asarray(scen["seeds"]), "pos_err": rng.random((len(rows), 4))}}
+
+    monkeypatch.setattr(pipe, "build_case", build_case)
+    monkeypatch.setattr(pipe, "run_controller", run_controller)
+
+
+def _config(out):
+    return SweepConfig(out=str(out), arms=("9",), cases=("welding", "simple"), seeds=(1, 2),
+                       controllers=("velocity", "gradient"), figures=False, progress=False)
+
+
+def test_resume_after_interruption_equals_uninterrupted(monkeypatch, tmp_path):
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path / "clean"))
+    clean = load_runs(tmp_path / "clean")
+    # welding: velocity only (gradient runs on point-to-point cases); simple: velocity and gradient
+    assert [c for c in calls if c[0] == "run"] == [("run", "welding", "velocity"), ("run", "simple", "velocity"),
+                                                  ("run", "simple", "gradient")]
+
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls, interrupt_after=1)
+    with pytest.raises(_Interrupt):
+        run_sweep(_config(tmp_path / "resumed"))
+    assert not (tmp_path / "resumed" / "runs.csv").exists()
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path / "resumed"))
+    # only the units that were missing are computed again
+    assert calls == [("run", "simple", "velocity"), ("run", "simple", "gradient")]
+    resumed = load_runs(tmp_path / "resumed")
+    assert resumed == clean
+    assert (tmp_path / "resumed" / "traces" / "9dof_simple_gradient.npz").exists()
+
+    calls.clear()
+    run_sweep(_config(tmp_path / "resumed"))  # everything done: nothing recomputed
+    assert calls == []
+    cfg = json.loads((tmp_path / "resumed" / "config.json").read_text())
+    assert cfg["seeds"] == [1, 2]
+
+
+def test_changed_configuration_recomputes(monkeypatch, tmp_path):
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path))
+    calls.clear()
+    cfg = SweepConfig(out=str(tmp_path), arms=("9",), cases=("welding", "simple"), seeds=(1, 2),
+                      controllers=("velocity", "gradient"), gains={"velocity": {"kp": 12.0}},
+                      figures=False, progress=False)
+    run_sweep(cfg)
+    assert calls == [("run", "welding", "velocity"), ("run", "simple", "velocity")]
+
+
+SHARD_SCRIPT = textwrap.dedent(
+    """
+    import sys, numpy as np, jax, jax.numpy as jnp
+    import redman_jax as rj
+    from redman_jax._pipeline import _pad_batch, shard_batch
+    arm = rj.thesis_arm(7)
+    rng = np.random.default_rng(0)
+    q = jnp.asarray(rng.normal(size=(5, 7))); qd = jnp.asarray(rng.normal(size=(5, 7)))
+    (qp, qdp), R = _pad_batch((q, qd), len(jax.devices()))
+    qp, qdp = shard_batch((qp, qdp))
+    f = jax.jit(jax.vmap(lambda a, b: rj.forward_dynamics(arm, a, b, jnp.zeros(7))))
+    out = np.asarray(f(qp, qdp))[:R]
+    np.save(sys.argv[1], out)
+    print(len(jax.devices()), len(qp.sharding.device_set))
+    """
+)
+
+
+def test_sharded_batch_equals_single_device(tmp_path):
+    """The sweep's data-parallel path (pad to a multiple of the device count, shard the leading axis
+    over a 1-D mesh) gives the same numbers on 2 (forced host) devices as on one."""
+    script = tmp_path / "shard.py"
+    script.write_text(SHARD_SCRIPT)
+    outs = {}
+    for n in (1, 2):
+        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+        path = tmp_path / f"out{n}.npy"
+        proc = subprocess.run([sys.executable, str(script), str(path)], env=env, capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert proc.stdout.split() == [str(n), str(n)]
+        outs[n] = np.load(path)
+    assert outs[1].shape == (5, 7)
+    np.testing.assert_allclose(outs[2], outs[1], rtol=1e-12, atol=1e-12)
