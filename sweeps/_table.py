@@ -1,0 +1,58 @@
+"""Small helpers shared by the ablation scripts: group runs and print a markdown table."""
+
+from __future__ import annotations
+
+import math
+
+
+def _num(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _flag(v) -> bool:
+    return v is True or str(v) == "True"
+
+
+def valid_runs(rows):
+    """Runs on validated scenarios (an invalid scenario is no controller result)."""
+    return [r for r in rows if not (r.get("scenario_valid") is False or str(r.get("scenario_valid")) == "False")]
+
+
+def summarise(rows, key):
+    """``{key(r): stats}`` with runs, successes, collisions, mean errors over the successful runs."""
+    groups: dict = {}
+    for r in valid_runs(rows):
+        groups.setdefault(key(r), []).append(r)
+    out = {}
+    for k, rs in groups.items():
+        ok = [r for r in rs if _flag(r["success"])]
+
+        def mean(col, runs=ok):
+            xs = [_num(r[col]) for r in runs if math.isfinite(_num(r[col]))]
+            return sum(xs) / len(xs) if xs else float("nan")
+
+        out[k] = {
+            "runs": len(rs),
+            "success": len(ok),
+            "collided": sum(_flag(r["collided"]) for r in rs),
+            "diverged": sum(_flag(r.get("diverged")) for r in rs),
+            "mean_pos_error_mm": 1e3 * mean("mean_pos_error"),
+            "mean_ori_error": mean("mean_ori_error"),
+            "final_pos_error_mm": 1e3 * mean("final_pos_error", rs),
+            "time_to_goal_s": mean("time_to_goal"),
+        }
+    return out
+
+
+def markdown(header, lines):
+    def fmt(x):
+        if isinstance(x, float):
+            return "–" if not math.isfinite(x) else f"{x:.3g}"
+        return str(x)
+
+    rows = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    rows += ["| " + " | ".join(fmt(x) for x in line) + " |" for line in lines]
+    return "\n".join(rows)
