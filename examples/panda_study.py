@@ -14,8 +14,10 @@ high); the Panda reaches ~0.85 m from a base on the floor. Measured (seeds 1-3, 
 inspection and welding generators find no scene within the Panda's reach at all (reach and
 start-protection rules), and the warehouse scenes generate but their IK trajectories do not
 validate (collisions, goals not reached). Moreover ``from_urdf``'s default start pose (zeros
-clipped into the limits) puts joint 4 exactly on its upper limit, so the null-space joint-limit
-policy starts saturated. Runs without a validated scenario stay in the table with
+clipped into the limits) puts joint 4 on its upper limit up to rounding, where the null-space
+joint-limit policy (3.35) evaluates to about -1.6e25 rad/s^2: the OSC controllers with their
+default null-space policies diverge in the first sample there (flagged ``diverged``), while the
+velocity OSC with ``nullspace="none"`` tracks the same warehouse reference to 6 mm. Runs without a validated scenario stay in the table with
 ``scenario_valid = False``; this script says so rather than reporting them as controller results.
 
 Run (full: all five cases, seeds 1-20, the thesis's four controllers)::

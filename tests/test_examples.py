@@ -5,8 +5,8 @@ temporary output folder; the test checks the exit code, the files it promises an
 numbers are sane (finite, in physical ranges, and consistent with what the example claims).
 The sweep scripts (full-scale work, hours) get a ``--help`` smoke test only.
 
-Cost: the four small runs take about 2.5 min of CPU on a 2-core machine, nearly all of it XLA
-compilation. They share one JAX persistent compilation cache (a module-scoped temporary folder),
+Cost: the four small runs (``@pytest.mark.slow``) take about 2.7 min of CPU on a 2-core machine
+(measured: 3 min wall for the whole file on an idle machine), nearly all of it XLA compilation. They share one JAX persistent compilation cache (a module-scoped temporary folder),
 so the scenario build of ``single_scenario`` (7-DOF, inspection, seed 1) is a cache hit for
 ``custom_controller``, which runs the same case through ``run_sweep``.
 """
@@ -68,6 +68,7 @@ def is_png(path: Path) -> bool:
 # examples at small size
 
 
+@pytest.mark.slow
 def test_single_scenario(tmp_path, env):
     out = tmp_path / "single"
     proc = run("examples/single_scenario.py", "--small", "--out", str(out), env=env)
@@ -92,6 +93,7 @@ def test_single_scenario(tmp_path, env):
     assert is_png(out / "single_scenario.png")
 
 
+@pytest.mark.slow
 def test_custom_controller(tmp_path, env):
     out = tmp_path / "custom"
     proc = run("examples/custom_controller.py", "--small", "--out", str(out), env=env)
@@ -143,6 +145,7 @@ def test_custom_controller_law_at_rest():
                                    atol=1e-9)
 
 
+@pytest.mark.slow
 def test_own_jit(tmp_path, env):
     out = tmp_path / "own"
     proc = run("examples/own_jit.py", "--small", "--out", str(out), env=env)
@@ -158,6 +161,7 @@ def test_own_jit(tmp_path, env):
     assert all(0.0 < e < 0.05 for e in s["mean_err_m"])
 
 
+@pytest.mark.slow
 def test_panda_study(tmp_path, env):
     out = tmp_path / "panda"
     proc = run("examples/panda_study.py", "--small", "--out", str(out), env=env)
