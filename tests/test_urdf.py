@@ -72,7 +72,8 @@ def test_panda_loads(panda_path):
     assert arm.joint_names == tuple(f"panda_joint{k}" for k in range(1, 8))
     assert not any(arm.prismatic) and bool(np.all(np.asarray(arm.limited)))
     np.testing.assert_allclose(np.asarray(arm.q_min)[3:4], [-3.0718])
-    np.testing.assert_allclose(np.asarray(arm.q0), [0, 0, 0, -0.0698, 0, 0, 0])  # zeros clipped
+    # zeros clipped into the limits with a 5 % margin: joint 4 in [-3.0718, -0.0698], joint 6 in [-0.0175, 3.7525]
+    np.testing.assert_allclose(np.asarray(arm.q0), [0, 0, 0, -0.0698 - 0.05 * 3.002, 0, -0.0175 + 0.05 * 3.77, 0], atol=1e-12)
     # link7 + link8 (massless) + hand (0.73 kg) lumped; the fingers (a movable branch) ignored
     assert float(arm.masses[-1]) == pytest.approx(0.735522 + 0.73)
     M = np.asarray(mass_matrix(arm, arm.q0))
@@ -154,7 +155,7 @@ def test_small_urdf_lumping_and_limits():
     arm = from_urdf_string(SMALL, "tip")
     assert arm.joint_names == ("j1", "j2", "j3") and arm.prismatic == (False, False, True)
     assert [bool(x) for x in arm.limited] == [False, True, True]
-    np.testing.assert_allclose(np.asarray(arm.q0), [0, 0, 0.1])  # zero clipped into [0.1, 0.5]
+    np.testing.assert_allclose(np.asarray(arm.q0), [0, 0, 0.12])  # zero clipped into [0.1, 0.5], 5 % margin
     np.testing.assert_allclose(np.asarray(arm.q_min)[1:], [-1, 0.1])
     # body of j1 = a + a_tool (fixed): lumped mass and CoM by hand, in a's frame
     assert float(arm.masses[0]) == pytest.approx(3.0)

@@ -508,13 +508,20 @@ def joint_limit_policy(arm: Arm, q: Float[Array, " n"], a, outside) -> Float[Arr
     with ``u = q - (q_min + q_max)/2`` and ``h = (q_max - q_min)/2``; zero for unlimited joints.
     It equals ``-d/dq [a (h^2 - u^2)^(-1/2)]`` and always pushes inward. NaN-free gradients (double
     ``where``).
+
+    Inside the limits the magnitude is capped at ``outside``: the barrier grows without bound as a
+    joint nears its limit (about 1e25 for a joint that sits on its limit up to rounding, e.g. a URDF
+    start pose clipped onto a limit), which no projector or solver survives; the thesis's value
+    beyond the limits is the natural saturation, and the cap makes the policy continuous there.
+    Below the cap the formula is unchanged.
     """
     q_mid = 0.5 * (arm.q_min + arm.q_max)
     h = 0.5 * (arm.q_max - arm.q_min)
     u = q - q_mid
     inside = jnp.abs(u) < h
     den = jnp.where(inside, h * h - u * u, 1.0)
-    val = jnp.where(inside, -a * u / (den * jnp.sqrt(den)), -jnp.sign(u) * outside)
+    barrier = jnp.clip(-a * u / (den * jnp.sqrt(den)), -outside, outside)
+    val = jnp.where(inside, barrier, -jnp.sign(u) * outside)
     return jnp.where(arm.limited, val, 0.0)
 
 

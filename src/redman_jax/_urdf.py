@@ -24,7 +24,7 @@ file into an :class:`~redman_jax.Arm`, so the whole study can run on a real arm:
   the last), so the points of interest run along the segment between consecutive joints.
 * **Limits:** ``<limit lower upper>`` for revolute and prismatic joints (``limited = True``);
   continuous joints are unlimited (``q_min, q_max = -pi, pi``, ``limited = False``).
-* ``q0``: zeros clipped into the limits unless given.
+* ``q0``: zeros clipped into the limits, kept 5 % of each range away from them, unless given.
 
 :func:`to_urdf` writes an Arm back as URDF text (used to hand the thesis arms to Pinocchio in the
 benchmark and tested by the round trip ``from_urdf(to_urdf(arm)) == arm``).
@@ -251,7 +251,8 @@ def from_urdf(path: str | os.PathLike, tip_link: str, base_link: str | None = No
     - ``base_link``: the fixed link whose frame is the world (default: the root of the tree).
     - ``points_per_link``: points of interest per segment (thesis: 4).
     - ``link_width``: link width(s) [m], a scalar or one per movable joint (thesis: 0.10).
-    - ``q0``: initial configuration ``(n,)``; default zeros clipped into the joint limits.
+    - ``q0``: initial configuration ``(n,)``; default zeros clipped into the joint limits with a
+      margin of 5 % of each range (a start on a limit would start in contact).
     - ``gravity``: ``(3,)`` [m/s^2] in the base frame.
     - ``name``: the arm's name (default: the ``<robot name>``).
 
@@ -367,7 +368,8 @@ def from_urdf_string(text: str, tip_link: str, base_link: str | None = None, *,
     q_min = np.array([j.lower for j in movable])
     q_max = np.array([j.upper for j in movable])
     if q0 is None:
-        q0_arr = np.where(limited, np.clip(0.0, q_min, q_max), 0.0)
+        margin = 0.05 * (np.asarray(q_max) - np.asarray(q_min))
+        q0_arr = np.where(limited, np.clip(0.0, q_min + margin, q_max - margin), 0.0)
     else:
         q0_arr = np.asarray(q0, dtype=float)
         if q0_arr.shape != (n,):
