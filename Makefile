@@ -10,16 +10,22 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q -e '.[test,io]'
 	touch $@
 
-.PHONY: venv run test bench
+.PHONY: venv run test test-all bench
 venv: $(VENV)/.installed
 
 run: $(VENV)/.installed
 	$(PY) -m redman_jax study --out results
 
 # pytest exits 5 when it collects no test: treat that as a failure-free run with a clear message.
+# `make test` (what CI runs) leaves out the tests marked slow: reverse-mode compilations through the
+# closed loop and whole tuning runs that take minutes each on 2 cores. `make test-all` runs them too.
+PYTEST_MARK ?= not slow
 test: $(VENV)/.installed
-	$(PY) -m pytest -q -n 2 --dist loadfile; rc=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "$(PYTEST_MARK)"; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
+
+test-all: $(VENV)/.installed
+	$(MAKE) test PYTEST_MARK=""
 
 bench: $(VENV)/.installed
 	$(PY) -m pip install -q -e '.[bench]'
