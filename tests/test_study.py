@@ -171,3 +171,29 @@ def test_sharded_batch_equals_single_device(tmp_path):
         outs[n] = np.load(path)
     assert outs[1].shape == (5, 7)
     np.testing.assert_allclose(outs[2], outs[1], rtol=1e-12, atol=1e-12)
+
+
+def test_gain_overrides_from_a_tuned_gains_file(tmp_path):
+    """`--gains` takes the `{controller: {gain: value}}` file `redman-jax tune` writes; the
+    overrides land in the gains pytree as strongly typed arrays and bad names are refused."""
+    import jax
+
+    from redman_jax._controllers import CONTROLLERS
+    from redman_jax._tuning import gains_to_dict, write_gains_json
+
+    ctrl = CONTROLLERS["acceleration"]()
+    tuned = pipe.make_gains(ctrl, {"kp": 444.5, "kd": 36.38})
+    path = tmp_path / "tuned_gains.json"
+    write_gains_json(path, {"acceleration": gains_to_dict(tuned, ("kp", "kd"))})
+    overrides = json.loads(path.read_text())["acceleration"]
+    gains = pipe.make_gains(ctrl, overrides)
+    assert float(gains.kp) == 444.5 and float(gains.kd) == 36.38
+    assert float(gains.kpr) == float(ctrl.default_gains().kpr)
+    # same structure, dtypes and weak types as the defaults: one compilation serves both
+    assert jax.tree.structure(gains) == jax.tree.structure(ctrl.default_gains())
+    for a, b in zip(jax.tree.leaves(gains), jax.tree.leaves(ctrl.default_gains())):
+        assert a.dtype == b.dtype and a.weak_type == b.weak_type
+    with pytest.raises(ValueError, match="no field 'kq'"):
+        pipe.make_gains(ctrl, {"kq": 1.0})
+    cfg = SweepConfig(out=str(tmp_path), gains={"acceleration": overrides}, figures=False, progress=False)
+    assert cfg.gains["acceleration"]["kp"] == 444.5
