@@ -17,8 +17,9 @@ run: $(VENV)/.installed
 	$(PY) -m redman_jax study --out results
 
 # pytest exits 5 when it collects no test: treat that as a failure-free run with a clear message.
-# `make test` (what CI runs) leaves out the tests marked slow: reverse-mode compilations through the
-# closed loop and whole tuning runs that take minutes each on 2 cores. `make test-all` runs them too.
+# `make test` (what CI runs) leaves out the tests marked slow: whole tuning runs with reverse-mode
+# compilations through the simulator, and the examples, minutes each on 2 cores. `make test-all`
+# runs them too.
 PYTEST_MARK ?= not slow
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "$(PYTEST_MARK)"; rc=$$?; \

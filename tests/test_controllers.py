@@ -218,7 +218,6 @@ def test_joint_space_error_follows_its_poles():
     np.testing.assert_allclose(e, np.broadcast_to(e_ref, e.shape), atol=1e-6)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["velocity", "acceleration", "velocity_original"])
 def test_osc_tracks_smooth_reference(name):
     """Exact model, no obstacles, null-space policies on, orientation held (rot = 1): a 5 cm half
@@ -283,7 +282,6 @@ def _rollout_loss(ctrl, obs, n_steps=4, dt=0.005):
     return loss
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["acceleration", "velocity", "joint_space"])
 def test_gain_gradients_match_finite_differences(name):
     """d loss / d gain of a short closed-loop rollout is finite and equals central differences, for
