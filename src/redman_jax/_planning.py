@@ -327,6 +327,17 @@ def _block_size(M: int) -> int:
     return min(_BLOCK, M)
 
 
+def _block_sq_dists(nodes, n, x, b, blk: int):
+    """Squared distances from ``x`` to block ``b`` (``blk`` nodes) of the node buffer ``(3, M)`` and
+    their indices; nodes at or beyond ``n``, and those an overlapping last block repeats, get ``inf``."""
+    M = nodes.shape[1]
+    start = jnp.minimum(b * blk, M - blk)
+    T = jax.lax.dynamic_slice(nodes, (0, start), (3, blk))
+    d2 = (T[0] - x[0]) ** 2 + (T[1] - x[1]) ** 2 + (T[2] - x[2]) ** 2
+    ids = start + jnp.arange(blk)
+    return jnp.where((ids < n) & (ids >= b * blk), d2, jnp.inf), ids
+
+
 def _nearest(nodes, n, x):
     """Index of the node nearest to ``x`` among the first ``n`` of ``nodes`` ``(3, M)``.
 
@@ -337,15 +348,10 @@ def _nearest(nodes, n, x):
     M = nodes.shape[1]
     blk = _block_size(M)
     n_blocks = (n + blk - 1) // blk
-    ids0 = jnp.arange(blk)
 
     def body(c):
         b, best_d, best_i = c
-        start = jnp.minimum(b * blk, M - blk)
-        T = jax.lax.dynamic_slice(nodes, (0, start), (3, blk))
-        d2 = (T[0] - x[0]) ** 2 + (T[1] - x[1]) ** 2 + (T[2] - x[2]) ** 2
-        ids = start + ids0
-        d2 = jnp.where((ids < n) & (ids >= b * blk), d2, jnp.inf)
+        d2, ids = _block_sq_dists(nodes, n, x, b, blk)
         m = jnp.min(d2)
         i = jnp.min(jnp.where(d2 == m, ids, M))
         better = m < best_d
@@ -361,15 +367,10 @@ def _k_nearest(nodes, n, x, k: int):
     M = nodes.shape[1]
     blk = _block_size(M)
     n_blocks = (n + blk - 1) // blk
-    ids0 = jnp.arange(blk)
 
     def body(c):
         b, best_d, best_i = c
-        start = jnp.minimum(b * blk, M - blk)
-        T = jax.lax.dynamic_slice(nodes, (0, start), (3, blk))
-        d2 = (T[0] - x[0]) ** 2 + (T[1] - x[1]) ** 2 + (T[2] - x[2]) ** 2
-        ids = start + ids0
-        d2 = jnp.where((ids < n) & (ids >= b * blk), d2, jnp.inf)
+        d2, ids = _block_sq_dists(nodes, n, x, b, blk)
         all_d = jnp.concatenate([best_d, d2])
         all_i = jnp.concatenate([best_i, ids])
         neg, sel = jax.lax.top_k(-all_d, k)
