@@ -19,33 +19,17 @@ import numpy as np  # noqa: E402
 
 import redman_jax  # noqa: E402,F401
 from redman_jax._guidance import PerfectParams, perfect_controller  # noqa: E402
-from redman_jax._obstacles import make_obstacles  # noqa: E402
+from redman_jax._cases import make_scenario  # noqa: E402
+from redman_jax._robot import thesis_arm  # noqa: E402
 
 
-def simple_scene(seed, x_start=(0.0, 0.0, 1.5)):
-    """Simple-obstacle scene by hand (SPEC section 4, U18)."""
-    rng = np.random.default_rng(seed)
-    xs = np.asarray(x_start, float)
-    while True:
-        r, th, z = rng.uniform(0.45, 0.70), rng.uniform(0, 2 * np.pi), rng.uniform(0.2, 1.0)
-        xg = np.array([r * np.cos(th), r * np.sin(th), z])
-        if 0.7 <= np.linalg.norm(xg - xs) <= 1.2:
-            break
-    u = (xg - xs) / np.linalg.norm(xg - xs)
-    a = np.cross(u, [0, 0, 1.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(u, a)
-    mid, roll = 0.5 * (xs + xg), rng.uniform(0, 2 * np.pi)
-    tri = [mid + 0.16 * (np.cos(roll + k * 2 * np.pi / 3) * a + np.sin(roll + k * 2 * np.pi / 3) * b)
-           for k in range(3)]
-    for _ in range(100):
-        s, phi = rng.uniform(0.25, 0.75), rng.uniform(0, 2 * np.pi)
-        c4 = xs + s * (xg - xs) + rng.uniform(0.25, 0.35) * (np.cos(phi) * a + np.sin(phi) * b)
-        if (min(np.linalg.norm(c4 - xs), np.linalg.norm(c4 - xg)) >= 0.3
-                and min(np.linalg.norm(c4 - t) for t in tri) - 0.14 >= 0.2):
-            break
-    centres = tri + [c4]
-    return make_obstacles(spheres=[(np.eye(3), c, (0.07,)) for c in centres], capacities=(4, 1, 1)), xs, xg, centres
+def simple_scene(seed, dof=9):
+    """The simple-obstacle scene of ``seed`` from the case generator (SPEC section 4, U18): the
+    obstacle set, start and goal positions, and the four sphere centres."""
+    sc = make_scenario("simple", seed, thesis_arm(dof))
+    sph = sc.obstacles.spheres
+    centres = [np.asarray(c) for c, m in zip(sph.p, sph.mask) if bool(m)]
+    return sc.obstacles, np.asarray(sc.reference.p[0]), np.asarray(sc.goal_p), centres
 
 
 def main():
@@ -60,7 +44,7 @@ def main():
     est = np.asarray(res.estimates)[:n]
     ok = np.asarray(res.estimate_valid)[:n]
     # the moment of closest approach to the trap: show the buffer active then
-    mid = np.mean(centres[:3], axis=0)
+    mid = np.mean(centres[:3], axis=0)  # the generator places the triangle first
     k = int(np.argmin(np.linalg.norm(x - mid, axis=1)))
     active = np.asarray(res.buffers)[k][np.asarray(res.buffer_masks)[k]]
     fig = plt.figure(figsize=(7, 6))
