@@ -1,8 +1,21 @@
-"""Small helpers shared by the ablation scripts: group runs and print a markdown table."""
+"""Small helpers shared by the ablation scripts: their sweep configuration, grouping runs and a
+markdown table."""
 
 from __future__ import annotations
 
 import math
+
+
+def ablation_config(args, controllers, allowed_cases):
+    """The ``SweepConfig`` of an ablation script from its ``--out --arms --cases --seeds
+    --max-retries --quiet`` arguments (figures off: the script prints its own table)."""
+    from redman_jax._cli import parse_int_list, parse_name_list
+    from redman_jax._study import SweepConfig
+
+    arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
+    return SweepConfig(out=args.out, arms=arms, cases=parse_name_list(args.cases, "cases", allowed_cases),
+                       seeds=parse_int_list(args.seeds, "seeds"), controllers=tuple(controllers),
+                       max_retries=args.max_retries, figures=False, progress=not args.quiet)
 
 
 def _num(v) -> float:

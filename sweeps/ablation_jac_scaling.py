@@ -65,17 +65,13 @@ def register() -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from redman_jax._cli import parse_int_list, parse_name_list
-    from redman_jax._study import SweepConfig, load_runs, run_sweep
+    from redman_jax._study import load_runs, run_sweep
 
-    from _table import markdown, summarise
+    from _table import ablation_config, markdown, summarise
 
     register()
-    arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
-    cases = parse_name_list(args.cases, "cases", CASES)
-    cfg = SweepConfig(out=args.out, arms=arms, cases=cases, seeds=parse_int_list(args.seeds, "seeds"),
-                      controllers=tuple(VARIANTS), max_retries=args.max_retries, figures=False,
-                      progress=not args.quiet)
+    cfg = ablation_config(args, VARIANTS, CASES)
+    cases = cfg.cases
     out = run_sweep(cfg)
     rows = load_runs(out)
 
