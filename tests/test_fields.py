@@ -250,6 +250,27 @@ def test_obstacle_gradients_over_points_and_padding(rng):
     np.testing.assert_allclose(G, Gp, rtol=1e-14)  # masked slots contribute nothing
 
 
+def test_points_min_distance_equals_per_point_minimum(rng):
+    """The fused running minimum of the simulator's collision flag equals ``min`` over
+    :func:`obstacle_distances` at points outside, inside and on ridges, ignores padded slots, and
+    runs in float32."""
+    from redman_jax import points_min_distance
+
+    obs = _scene()
+    xs = np.concatenate([_outside_points(obs, rng, 40), rng.uniform(-0.8, 0.8, (200, 3)),
+                         np.asarray(obs.boxes.p[:1]), np.asarray(obs.cylinders.p[:1])])
+    ref = np.asarray(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x)))(jnp.asarray(xs)))
+    assert (ref < 0).any() and (ref > 0).any()
+    f = jax.jit(points_min_distance)
+    np.testing.assert_allclose(np.asarray(f(obs, jnp.asarray(xs))), ref, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(f(pad_obstacles(obs, (5, 5, 5)), jnp.asarray(xs))), ref,
+                               rtol=1e-13, atol=1e-15)
+    obs32 = jax.tree.map(lambda t: t.astype(jnp.float32) if t.dtype == jnp.float64 else t, obs)
+    d32 = np.asarray(f(obs32, jnp.asarray(xs, jnp.float32)))
+    assert d32.dtype == np.float32
+    np.testing.assert_allclose(d32, ref, atol=1e-5)
+
+
 @pytest.mark.parametrize("kind", ["spheres", "boxes", "cylinders"])
 def test_clamp_inside_obstacle_gives_finite_outward_force(kind):
     R = _rot(4)

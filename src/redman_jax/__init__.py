@@ -58,6 +58,7 @@ from ._obstacles import (
     stack_obstacles as stack_obstacles,
     obstacle_distances as obstacle_distances,
     min_distance as min_distance,
+    points_min_distance as points_min_distance,
 )
 from ._scenario import (
     Reference as Reference,

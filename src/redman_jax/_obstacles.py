@@ -35,6 +35,7 @@ __all__ = [
     "cylinder_sdf",
     "obstacle_distances",
     "min_distance",
+    "points_min_distance",
     "BIG_DISTANCE",
 ]
 
@@ -189,3 +190,47 @@ def obstacle_distances(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, "
 def min_distance(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, ""]:
     """Smallest signed distance from ``x`` to any active obstacle (BIG_DISTANCE if none)."""
     return jnp.min(obstacle_distances(obs, x))
+
+
+def _slot_sdf(kind: str, R, p, dims, X):
+    """Signed distance of every point to one slot, structure-of-arrays (``X``: three ``(m,)`` planes)."""
+    d = [X[j] - p[j] for j in range(3)]
+    if kind == "spheres":
+        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        return jnp.sqrt(r2) - dims[0]
+    xl = [R[0, i] * d[0] + R[1, i] * d[1] + R[2, i] * d[2] for i in range(3)]  # R^T (x - p)
+    if kind == "boxes":
+        u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
+    else:
+        u = [jnp.sqrt(xl[0] * xl[0] + xl[1] * xl[1]) - dims[0], jnp.abs(xl[2]) - dims[1]]
+    o = [jnp.maximum(v, 0.0) for v in u]
+    inner = u[0]
+    for v in u[1:]:
+        inner = jnp.maximum(inner, v)
+    return jnp.sqrt(sum(v * v for v in o)) + jnp.minimum(inner, 0.0)
+
+
+def points_min_distance(obs: ObstacleSet, points: Float[Array, "m 3"]) -> Float[Array, " m"]:
+    """Smallest signed distance from each of ``m`` points to any active obstacle, ``(m,)``
+    (:data:`BIG_DISTANCE` if none); equal to ``vmap(min_distance)`` over the points.
+
+    For the hot paths (the simulator's collision flag at every vector-field evaluation, planning):
+    a ``lax.scan`` over each family's slots keeps a running minimum in three ``(m,)`` planes, so
+    under ``vmap`` every slot is one fused element-wise pass (about 10x faster on CPU than the
+    per-point ``(m, K)`` evaluation). Not meant for gradients (the minimum switches between slots).
+    """
+    points = jnp.asarray(points)
+    X = tuple(points[:, j] for j in range(3))
+    best = jnp.full(points.shape[:1], BIG_DISTANCE, points.dtype)
+    for kind in ("spheres", "boxes", "cylinders"):
+        fam = getattr(obs, kind)
+        if fam.capacity == 0:
+            continue
+
+        def body(acc, slot, kind=kind):
+            R, p, dims, mask = slot
+            d = _slot_sdf(kind, R, p, dims, X)
+            return jnp.where(mask, jnp.minimum(acc, d), acc), None
+
+        best, _ = jax.lax.scan(body, best, (fam.R, fam.p, fam.dims, fam.mask))
+    return best

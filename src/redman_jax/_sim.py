@@ -66,7 +66,7 @@ from ._metrics import (
     position_errors,
     run_metrics,
 )
-from ._obstacles import obstacle_distances
+from ._obstacles import points_min_distance
 from ._robot import Arm
 from ._scenario import Reference, Scenario
 
@@ -290,8 +290,7 @@ def _poi_thresholds(arm: Arm, dtype):
 
 def _min_poi_distance(arm: Arm, kin, q, obstacles):
     pois = poi_positions_from(arm, kin, q)
-    d = jax.vmap(lambda x: obstacle_distances(obstacles, x))(pois)  # (m, K)
-    return jnp.min(d, axis=1)  # (m,)
+    return points_min_distance(obstacles, pois)  # (m,), one fused pass per obstacle slot
 
 
 def _all_finite(tree) -> Array:
