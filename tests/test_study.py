@@ -137,6 +137,30 @@ def test_changed_configuration_recomputes(monkeypatch, tmp_path):
     assert calls == [("run", "welding", "velocity"), ("run", "simple", "velocity")]
 
 
+def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
+    """``jobs=2``: the (arm, case) groups run in two spawned worker processes; every unit is computed
+    once, the table equals the one-process sweep, and a rerun computes nothing."""
+    import dataclasses
+
+    import _fake_units
+
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path / "serial"))
+    tests_dir = os.path.dirname(os.path.abspath(__file__))
+    monkeypatch.setenv("PYTHONPATH", tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cfg = dataclasses.replace(_config(tmp_path / "parallel"), jobs=2)
+    run_sweep(cfg, _worker_init=_fake_units.install)
+    assert load_runs(tmp_path / "parallel") == load_runs(tmp_path / "serial")
+    names = sorted(p.name for p in (tmp_path / "parallel").iterdir())
+    assert sorted(p.name for p in (tmp_path / "serial").iterdir()) == names
+    calls.clear()
+    run_sweep(dataclasses.replace(cfg, jobs=1))  # resumes: everything is there
+    assert calls == []
+    with pytest.raises(ValueError, match="jobs"):
+        SweepConfig(jobs=0)
+
+
 SHARD_SCRIPT = textwrap.dedent(
     """
     import sys, numpy as np, jax, jax.numpy as jnp

@@ -9,6 +9,11 @@ Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
    controller), the batch sharded over every JAX device;
 4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing).
 
+``jobs > 1`` runs the (arm, case) groups in that many worker processes (``spawn``): XLA compiles
+on one thread, so on a CPU machine two workers keep two cores busy through the compile-heavy parts
+(one compilation per arm, case and controller). The results are the same as with one process
+(each unit is a deterministic function of its configuration; tested).
+
 At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` hold one row per run, ``DIR/traces/`` the
 per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, and (unless
 ``--no-figures``) ``DIR/figures/`` and ``DIR/report.md`` compare the numbers with the thesis.
@@ -82,6 +87,7 @@ class SweepConfig:
     max_retries: int = 20
     figures: bool = True
     progress: bool = True
+    jobs: int = 1
 
     def __post_init__(self):
         from ._controllers import CONTROLLERS
@@ -96,6 +102,8 @@ class SweepConfig:
             raise ValueError(f"seeds: need non-negative integers, got {self.seeds}")
         if not (0 < self.ts <= 0.1):
             raise ValueError(f"ts: sample time must be in (0, 0.1] s, got {self.ts}")
+        if not isinstance(self.jobs, int) or self.jobs < 1:
+            raise ValueError(f"jobs: need a positive number of worker processes, got {self.jobs!r}")
         if self.max_retries < 0:
             raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
         for a in self.arms:
@@ -113,7 +121,7 @@ class SweepConfig:
 
         seeds = parse_int_list(args.seeds, "seeds")
         common = dict(out=args.out, seeds=seeds, max_retries=args.max_retries,
-                      figures=not args.no_figures, progress=not args.quiet)
+                      figures=not args.no_figures, progress=not args.quiet, jobs=_jobs(args.jobs))
         if study:
             return cls(**common)
         arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
@@ -134,6 +142,7 @@ class SweepConfig:
         d = dataclasses.asdict(self)
         d.pop("progress")
         d.pop("figures")
+        d.pop("jobs")
         return d
 
 
@@ -147,43 +156,98 @@ def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
     return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains, "v": 1})
 
 
-def run_sweep(cfg: SweepConfig) -> Path:
-    """Run (or resume) a sweep; returns the results folder."""
+def _jobs(value) -> int:
+    """``--jobs``: an integer >= 1, or ``auto`` (the default): 2 worker processes on a CPU machine
+    with at least 2 cores, else 1 (accelerators: one process owns the device)."""
+    if value in (None, "auto"):
+        import os
+
+        import jax
+
+        if jax.default_backend() != "cpu":
+            return 1
+        return 2 if (os.cpu_count() or 1) >= 2 else 1
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"--jobs: expected a positive integer or 'auto', got {value!r}") from None
+    if n < 1:
+        raise ValueError(f"--jobs: expected a positive integer or 'auto', got {value!r}")
+    return n
+
+
+def _units(cfg: SweepConfig):
+    """``{(arm, case): [(kind, arm, case, ctrl, name, key), ...]}`` in execution order."""
+    groups = {}
+    for arm in cfg.arms:
+        label = _arm_label(arm)
+        for case in cfg.cases:
+            g = groups.setdefault((arm, case), [])
+            g.append(("scen", arm, case, None, f"scen_{label}_{case}", _scenario_key(cfg, arm, case)))
+            for ctrl in cfg.controllers_for(case):
+                g.append(("run", arm, case, ctrl, f"run_{label}_{case}_{ctrl}", _run_key(cfg, arm, case, ctrl)))
+    return groups
+
+
+def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     from . import _pipeline as pipe
 
+    kind, arm_spec, case, ctrl, name, key = unit
+    if arm_spec not in arms:
+        arms[arm_spec] = arm_from_spec(arm_spec)
+    arm = arms[arm_spec]
+    if kind == "scen":
+        payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
+    else:
+        scen = store.load(f"scen_{_arm_label(arm_spec)}_{case}")
+        payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl))
+        payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
+    store.save(name, key, payload)
+
+
+def _run_group(cfg: SweepConfig, group: list) -> list[tuple[str, float]]:
+    """Worker: the missing units of one (arm, case) group, in order; ``[(name, seconds)]``."""
+    store = UnitStore(Path(cfg.out))
+    arms, done = {}, []
+    for unit in group:
+        if store.has(unit[4], unit[5]):
+            continue
+        t0 = time.perf_counter()
+        _run_unit(cfg, store, arms, unit)
+        done.append((unit[4], time.perf_counter() - t0))
+    return done
+
+
+# expected relative cost of a case's group (samples x obstacles), to start the long ones first
+_CASE_WEIGHT = {"warehouse": 3, "agriculture": 3, "simple": 2, "welding": 2, "inspection": 1}
+
+
+def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
+    """Run (or resume) a sweep; returns the results folder. (``_worker_init``: a picklable callable
+    each worker process runs first; tests install their stand-in units with it.)"""
     out = Path(cfg.out)
     store = UnitStore(out)
     atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
-    units = []
-    for arm in cfg.arms:
-        for case in cfg.cases:
-            units.append(("scen", arm, case, None))
-            for ctrl in cfg.controllers_for(case):
-                units.append(("run", arm, case, ctrl))
-    progress = Progress(len(units), "units", enabled=cfg.progress)
-    arms = {}
-    for kind, arm_spec, case, ctrl in units:
-        label = _arm_label(arm_spec)
-        if kind == "scen":
-            name, key = f"scen_{label}_{case}", _scenario_key(cfg, arm_spec, case)
-        else:
-            name, key = f"run_{label}_{case}_{ctrl}", _run_key(cfg, arm_spec, case, ctrl)
-        if store.has(name, key):
-            progress.skip()
-            continue
-        if arm_spec not in arms:
-            arms[arm_spec] = arm_from_spec(arm_spec)
-        arm = arms[arm_spec]
-        t0 = time.perf_counter()
-        if kind == "scen":
-            payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
-        else:
-            scen = store.load(f"scen_{label}_{case}")
-            gains = (cfg.gains or {}).get(ctrl)
-            payload = pipe.run_controller(arm, scen, ctrl, gains)
-            payload["rows"] = [dict(r, arm=label) for r in payload["rows"]]
-        store.save(name, key, payload)
-        progress.advance(note=f"{name} ({time.perf_counter() - t0:.1f}s)")
+    groups = _units(cfg)
+    progress = Progress(sum(len(g) for g in groups.values()), "units", enabled=cfg.progress)
+    todo = {}
+    for gk, group in groups.items():
+        missing = [u for u in group if not store.has(u[4], u[5])]
+        if len(missing) < len(group):
+            progress.skip(len(group) - len(missing))
+        if missing:
+            todo[gk] = group
+    if cfg.jobs > 1 and len(todo) > 1:
+        _run_parallel(cfg, store, todo, progress, _worker_init)
+    else:
+        arms = {}
+        for group in todo.values():
+            for unit in group:
+                if store.has(unit[4], unit[5]):
+                    continue
+                t0 = time.perf_counter()
+                _run_unit(cfg, store, arms, unit)
+                progress.advance(note=f"{unit[4]} ({time.perf_counter() - t0:.1f}s)")
     rows = collect_rows(cfg, store)
     write_table(out, rows)
     if cfg.figures:
@@ -191,6 +255,24 @@ def run_sweep(cfg: SweepConfig) -> Path:
 
         make_report(out)
     return out
+
+
+def _run_parallel(cfg: SweepConfig, store: UnitStore, todo: dict, progress: Progress, init=None) -> None:
+    """The groups in ``cfg.jobs`` spawned worker processes, longest expected first. Units are saved
+    by the workers as they finish, so an interrupted sweep resumes from there."""
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    order = sorted(todo, key=lambda k: -_CASE_WEIGHT.get(k[1], 1))
+    worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
+    with ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=mp.get_context("spawn"), initializer=init) as pool:
+        futures = {pool.submit(_run_group, worker_cfg, todo[k]): k for k in order}
+        pending = set(futures)
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in finished:
+                for name, seconds in f.result():  # re-raises a worker's error here
+                    progress.advance(note=f"{name} ({seconds:.1f}s)")
 
 
 def collect_rows(cfg: SweepConfig, store: UnitStore) -> list[dict]:
