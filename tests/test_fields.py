@@ -250,6 +250,22 @@ def test_obstacle_gradients_over_points_and_padding(rng):
     np.testing.assert_allclose(G, Gp, rtol=1e-14)  # masked slots contribute nothing
 
 
+def test_points_sdf_and_normals_equal_per_point_autodiff(rng):
+    """The IK's all-pairs structure-of-arrays evaluation (analytic normals) equals the per-point
+    ``vmap`` of :func:`obstacle_sdf_and_normals` (autodiff normals), padded slots included."""
+    from redman_jax._fields import obstacle_sdf_and_normals, points_sdf_and_normals
+
+    obs = pad_obstacles(_scene(), (3, 4, 3))
+    centres = np.concatenate([np.asarray(f.p)[np.asarray(f.mask)] for f in (obs.spheres, obs.boxes, obs.cylinders)])
+    near = (centres[:, None, :] + rng.uniform(-0.12, 0.12, (len(centres), 40, 3))).reshape(-1, 3)
+    xs = jnp.asarray(np.concatenate([_outside_points(obs, rng, 30), rng.uniform(-0.8, 0.8, (300, 3)), near]))
+    D, N = jax.jit(points_sdf_and_normals)(obs, xs)
+    Dr, Nr = jax.vmap(lambda x: obstacle_sdf_and_normals(obs, x))(xs)
+    assert (np.asarray(Dr) < 0).any() and D.shape == Dr.shape and N.shape == Nr.shape
+    np.testing.assert_allclose(D, Dr, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(N, Nr, rtol=1e-12, atol=1e-13)
+
+
 def test_points_min_distance_equals_per_point_minimum(rng):
     """The fused running minimum of the simulator's collision flag equals ``min`` over
     :func:`obstacle_distances` at points outside, inside and on ridges, ignores padded slots, and

@@ -222,6 +222,20 @@ def test_policy_from_shared_distances_matches_nullspace_module():
     assert float(jnp.abs(ref).max()) > 1e-3
 
 
+def test_k_smallest_equals_top_k():
+    """The IK's pair selection equals ``lax.top_k(-x, k)``: values ascending, the same indices,
+    ties broken by the lowest index, also when ``k`` equals the size."""
+    from redman_jax._ik import _k_smallest
+
+    rng = np.random.default_rng(3)
+    for x in (rng.uniform(0, 2, 5328), np.round(rng.uniform(0, 1, 300), 1), rng.normal(size=16)):
+        for k in (1, 5, 16):
+            v, i = jax.jit(_k_smallest, static_argnums=1)(jnp.asarray(x), k)
+            neg, j = jax.lax.top_k(-jnp.asarray(x), k)
+            np.testing.assert_array_equal(np.asarray(v), -np.asarray(neg))
+            np.testing.assert_array_equal(np.asarray(i), np.asarray(j))
+
+
 def test_bad_input_raises():
     ref = circle_reference()
     with pytest.raises(ValueError, match="q0"):

@@ -72,7 +72,7 @@ from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link
 from ._math import as_float
 from ._math import clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
-from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, obstacle_sdf_and_normals
+from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
 from ._obstacles import ObstacleSet, obstacle_distances
 from ._qp import QPSettings, solve_qp
 from ._robot import Arm
@@ -282,7 +282,7 @@ def _geometry(arm: Arm, kin, q, obs: ObstacleSet):
     """Points of interest, their Jacobians, and distances / unit normals to every obstacle slot."""
     pois = poi_positions_from(arm, kin, q)
     poi_jac = poi_jacobians_from(arm, kin, pois)
-    D, normals = jax.vmap(lambda x: obstacle_sdf_and_normals(obs, x))(pois)
+    D, normals = points_sdf_and_normals(obs, pois)  # every (point, slot) pair, one fused pass
     return pois, poi_jac, D, normals
 
 
@@ -297,14 +297,30 @@ def _pair_distances(obs: ObstacleSet, pois):
     return jax.vmap(lambda x: obstacle_distances(obs, x))(pois)
 
 
+def _k_smallest(x: Float[Array, " N"], k: int):
+    """The ``k`` smallest entries of ``x`` in ascending order and their indices (ties: lowest
+    index first), as ``jax.lax.top_k(-x, k)`` gives them (tested), by ``k`` passes of two plain
+    reductions (the minimum, then the lowest index holding it). XLA's CPU ``top_k`` sorts the whole
+    array and its ``argmin`` is a slow variadic reduction; for the IK's 16 closest of 5328
+    (point, obstacle) pairs (the warehouse) this is 16x faster than ``top_k``."""
+    iota = jnp.arange(x.shape[0])
+
+    def pick(x, _):
+        v = jnp.min(x)
+        i = jnp.min(jnp.where(x == v, iota, x.shape[0] - 1))
+        return jnp.where(iota == i, jnp.inf, x), (v, i)
+
+    _, (vals, idx) = jax.lax.scan(pick, x, None, length=k)
+    return vals, idx
+
+
 def _obstacle_rows(D, normals, poi_jac, v_ns, ts, params: IKParams):
     """Linearised collision constraints (U7) on the ``n_pairs`` closest pairs within the activation
     distance: rows ``A_j = ts grad_q d_j`` (``grad_q d_j = n_j^T J_poi``, ``n_j`` the sdf gradient)
     and lower bounds ``-xi (d_j - margin) - A_j . v_ns`` (``-inf`` for unused rows)."""
     m, K = D.shape
     k = min(params.n_pairs, m * K)
-    neg, idx = jax.lax.top_k(-D.reshape(-1), k)
-    d = -neg
+    d, idx = _k_smallest(D.reshape(-1), k)
     i_poi = idx // K
     grad_x = normals.reshape(m * K, 3)[idx]
     grad_q = jnp.einsum("kj,kjn->kn", grad_x, poi_jac[i_poi])
