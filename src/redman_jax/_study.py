@@ -205,8 +205,9 @@ def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     store.save(name, key, payload)
 
 
-def _run_group(cfg: SweepConfig, group: list) -> list[tuple[str, float]]:
-    """Worker: the missing units of one (arm, case) group, in order; ``[(name, seconds)]``."""
+def _run_group(cfg: SweepConfig, group: list, queue=None) -> list[tuple[str, float]]:
+    """Worker: the missing units of one (arm, case) group, in order; ``[(name, seconds)]``, each
+    also put on ``queue`` as it finishes (the parent's progress bar)."""
     store = UnitStore(Path(cfg.out))
     arms, done = {}, []
     for unit in group:
@@ -215,6 +216,8 @@ def _run_group(cfg: SweepConfig, group: list) -> list[tuple[str, float]]:
         t0 = time.perf_counter()
         _run_unit(cfg, store, arms, unit)
         done.append((unit[4], time.perf_counter() - t0))
+        if queue is not None:
+            queue.put(done[-1])
     return done
 
 
@@ -261,18 +264,31 @@ def _run_parallel(cfg: SweepConfig, store: UnitStore, todo: dict, progress: Prog
     """The groups in ``cfg.jobs`` spawned worker processes, longest expected first. Units are saved
     by the workers as they finish, so an interrupted sweep resumes from there."""
     import multiprocessing as mp
+    import queue as queue_mod
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     order = sorted(todo, key=lambda k: -_CASE_WEIGHT.get(k[1], 1))
     worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
-    with ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=mp.get_context("spawn"), initializer=init) as pool:
-        futures = {pool.submit(_run_group, worker_cfg, todo[k]): k for k in order}
-        pending = set(futures)
+    ctx = mp.get_context("spawn")
+    with ctx.Manager() as manager, ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx,
+                                                       initializer=init) as pool:
+        q = manager.Queue()
+        pending = {pool.submit(_run_group, worker_cfg, todo[k], q) for k in order}
+
+        def drain():
+            while True:
+                try:
+                    name, seconds = q.get_nowait()
+                except queue_mod.Empty:
+                    return
+                progress.advance(note=f"{name} ({seconds:.1f}s)")
+
         while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            finished, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
             for f in finished:
-                for name, seconds in f.result():  # re-raises a worker's error here
-                    progress.advance(note=f"{name} ({seconds:.1f}s)")
+                f.result()  # re-raises a worker's error here
+            drain()
+        drain()
 
 
 def collect_rows(cfg: SweepConfig, store: UnitStore) -> list[dict]:
