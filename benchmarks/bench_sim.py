@@ -21,12 +21,15 @@ What is compared, per case and controller (scenarios and IK joint references fro
   first step. ``tests/test_numpy_baseline.py`` checks that this NumPy vector field equals the
   JAX one (``_sim._closed_loop``) to ~1e-9, so both sides integrate the same ODE.
   Only the first ``--scipy-samples`` samples of ``--scipy-seeds`` seeds are timed and the cost
-  is extrapolated per simulated second (the output says so).
+  is extrapolated per simulated second (the output says so). The cost per sample is far from
+  uniform along a run (warehouse, acceleration, seed 1: 4e3 to 2.1e4 evaluations per 25-sample
+  window), so the extrapolation can be off by tens of percent either way.
 * The collision and joint-limit flags of the NumPy loop are evaluated at every vector-field call
   (same work as JAX) but latched as booleans instead of integrated (they never enter the error
   norm, as in JAX).
-* The gradient-guided controller is timed on the JAX side only (no NumPy version: its
-  local-minima estimator and guidance field are not re-implemented here).
+* The gradient-guided controller (cases agriculture, warehouse, simple, as in the study;
+  per-sample solves over its 6 s horizon with the local-minima estimator) is timed on the JAX
+  side only: its estimator and guidance field have no NumPy version here.
 
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
 vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (N - 1)`` per member for the
@@ -582,7 +585,8 @@ def main(argv=None):
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()}), numpy {np.__version__}, "
           f"scipy {scipy.__version__}, x64={jax.config.jax_enable_x64}")
-    print(f"JAX: simulate_batch over {args.seeds} seeds, Tsit5 rtol {rtol:g} atol {atol:g}, one horizon solve; "
+    print(f"JAX: simulate_batch over {args.seeds} seeds, Tsit5 rtol {rtol:g} atol {atol:g}, one horizon solve "
+          f"(gradient: per-sample solves over its {params.guidance_samples}-sample horizon); "
           f"cold = first call incl. compilation, warm = second call.")
     K = args.scipy_samples
     print(f"SciPy: NumPy closed loop, solve_ivp {args.method} rtol {rtol:g} atol {atol:g} per sample, one seed "
