@@ -208,6 +208,22 @@ def test_modes_agree(free):
     np.testing.assert_allclose(a.f_obs, b.f_obs, atol=0)
 
 
+def test_padding_past_the_last_sample_is_nearly_free(free):
+    """A run whose scenario ends after 5 of its 50 samples of capacity: the first 5 samples equal
+    the full run's (the same steps; the fifth sample end is read from a different interpolant, to
+    rounding), the state is frozen afterwards, and the padded 45 samples cost
+    a few growing steps instead of at least one step each (no jump times there)."""
+    sc, jref = free
+    full = run(sc, jref, "osc")
+    short = eqx.tree_at(lambda s: s.reference.n_samples, sc, jnp.asarray(5))
+    res = run(short, jref, "osc")
+    np.testing.assert_array_equal(np.asarray(res.q[:4]), np.asarray(full.q[:4]))
+    np.testing.assert_allclose(np.asarray(res.q[4]), np.asarray(full.q[4]), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(res.q[5:]), np.broadcast_to(np.asarray(res.q[4]), res.q[5:].shape))
+    assert int(res.n_steps) < 5 + 45 // 2, int(res.n_steps)
+    assert int(res.status) == 0 and not bool(res.diverged)
+
+
 def test_determinism(free):
     sc, jref = free
     a = run(sc, jref, "osc")

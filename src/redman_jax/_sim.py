@@ -367,11 +367,13 @@ class _EvenSplit(diffrax.AbstractAdaptiveStepSizeController):
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state)
         i = jnp.minimum(jnp.searchsorted(self.ends, next_t0, side="right"), self.ends.shape[0] - 1)
         b = self.ends[i]
+        finite = jnp.isfinite(b)  # ends past the run's last valid sample are +inf: no split there
         h = next_t1 - next_t0
-        rem = b - next_t0
+        rem = jnp.where(finite, b - next_t0, 0.0)
         n = jnp.ceil(rem / jnp.where(h > 0, h, 1.0) - 1e-6)
         even = next_t0 + rem / jnp.maximum(n, 1.0)
-        next_t1 = jnp.where((h > 0) & (rem > h) & (b > next_t0), jnp.minimum(next_t1, even), next_t1)
+        split = finite & (h > 0) & (rem > h) & (b > next_t0)
+        next_t1 = jnp.where(split, jnp.minimum(next_t1, even), next_t1)
         return keep, next_t0, next_t1, made_jump, state, result
 
 
@@ -399,6 +401,12 @@ def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=N
     ends = ts * jnp.arange(1, N + 1, dtype=dtype)  # sample ends (k+1) t_s
     bounds = ends[:-1]  # jump times, the same floats the ZOH index is computed against
     t1 = ends[-1]
+    # Past the end of the run's last valid sample the field is zero: no jumps there, so the solver
+    # crosses the padding to the capacity in a few growing steps instead of one or more per padded
+    # sample (the steps up to the last valid sample are unchanged).
+    valid = jnp.arange(N) < ref.n_samples
+    jumps = jnp.where(valid[:-1], bounds, jnp.inf)
+    step_ends = jnp.where(valid, ends, jnp.inf)
 
     def vf(t, y, args):
         k = jnp.searchsorted(bounds, t, side="right")
@@ -410,7 +418,7 @@ def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=N
     saveat = diffrax.SaveAt(ts=ends if save_ts is None else save_ts, dense=dense)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vf), _make_solver(params), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
-        saveat=saveat, stepsize_controller=_pid(params, jump_ts=bounds if N > 1 else None, ends=ends),
+        saveat=saveat, stepsize_controller=_pid(params, jump_ts=jumps if N > 1 else None, ends=step_ends),
         adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample * N, throw=False)
     stats = (sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
     return sol, stats, sol.result._value
