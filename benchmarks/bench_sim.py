@@ -32,8 +32,8 @@ What is compared, per case and controller (scenarios and IK joint references fro
   side only: its estimator and guidance field have no NumPy version here.
 
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
-vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (N - 1)`` per member for the
-FSAL Tsit5 restarted after each of the ``N - 1`` jumps; a counting callback, ``--exact-evals``,
+vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (n - 1)`` per member for the
+FSAL Tsit5 restarted after each of the run's ``n - 1`` jumps, ``n`` its valid samples; a counting callback, ``--exact-evals``,
 finds about 1 % more; SciPy: counted), and the speed-up of JAX (20 seeds in one call) over SciPy
 (one seed at a time) per simulated second.
 """
@@ -516,10 +516,10 @@ def time_jax(arm, scen, ik, name, params):
 
 def jax_evals(res, N, uses_guidance, params):
     """Vector-field evaluations per member: FSAL Tsit5 costs 6 per attempted step plus one at the
-    start and after every jump (horizon mode: ``N - 1`` sample boundaries; per-sample mode, the
-    gradient runs: one per solve)."""
+    start and after every jump (horizon mode: the boundaries of the run's valid samples, none in
+    the padding up to the capacity ``N``; per-sample mode, the gradient runs: one per solve)."""
     steps = np.asarray(res.n_steps, float)
-    restarts = params.guidance_samples if uses_guidance else N
+    restarts = params.guidance_samples if uses_guidance else np.asarray(res.n_samples, float)
     return 6 * steps + restarts
 
 
