@@ -205,20 +205,16 @@ def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     store.save(name, key, payload)
 
 
-def _run_group(cfg: SweepConfig, group: list, queue=None) -> list[tuple[str, float]]:
-    """Worker: the missing units of one (arm, case) group, in order; ``[(name, seconds)]``, each
-    also put on ``queue`` as it finishes (the parent's progress bar)."""
+def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
+    """Run ``units`` (the missing units of one (arm, case) group, in order); ``report(name,
+    seconds)`` after each (the progress bar; in a worker, the parent's queue)."""
     store = UnitStore(Path(cfg.out))
-    arms, done = {}, []
-    for unit in group:
-        if store.has(unit[4], unit[5]):
-            continue
+    arms = {}
+    for unit in units:
         t0 = time.perf_counter()
         _run_unit(cfg, store, arms, unit)
-        done.append((unit[4], time.perf_counter() - t0))
-        if queue is not None:
-            queue.put(done[-1])
-    return done
+        if report is not None:
+            report((unit[4], time.perf_counter() - t0))
 
 
 # expected relative cost of a case's group (samples x obstacles), to start the long ones first
@@ -239,18 +235,12 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
         if len(missing) < len(group):
             progress.skip(len(group) - len(missing))
         if missing:
-            todo[gk] = group
+            todo[gk] = missing
     if cfg.jobs > 1 and len(todo) > 1:
-        _run_parallel(cfg, store, todo, progress, _worker_init)
+        _run_parallel(cfg, todo, progress, _worker_init)
     else:
-        arms = {}
-        for group in todo.values():
-            for unit in group:
-                if store.has(unit[4], unit[5]):
-                    continue
-                t0 = time.perf_counter()
-                _run_unit(cfg, store, arms, unit)
-                progress.advance(note=f"{unit[4]} ({time.perf_counter() - t0:.1f}s)")
+        for units in todo.values():
+            _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
     rows = collect_rows(cfg, store)
     write_table(out, rows)
     if cfg.figures:
@@ -260,7 +250,7 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     return out
 
 
-def _run_parallel(cfg: SweepConfig, store: UnitStore, todo: dict, progress: Progress, init=None) -> None:
+def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -> None:
     """The groups in ``cfg.jobs`` spawned worker processes, longest expected first. Units are saved
     by the workers as they finish, so an interrupted sweep resumes from there."""
     import multiprocessing as mp
@@ -273,7 +263,7 @@ def _run_parallel(cfg: SweepConfig, store: UnitStore, todo: dict, progress: Prog
     with ctx.Manager() as manager, ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx,
                                                        initializer=init) as pool:
         q = manager.Queue()
-        pending = {pool.submit(_run_group, worker_cfg, todo[k], q) for k in order}
+        pending = {pool.submit(_run_group, worker_cfg, todo[k], q.put) for k in order}
 
         def drain():
             while True:
