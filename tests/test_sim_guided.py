@@ -1,0 +1,103 @@
+"""Gradient-guided closed loop (thesis 3.3.3, SPEC 9): the real ``gradient`` controller with the
+local-minima estimator, integrated by the one-loop stepper (``mode="horizon"``) and by the scan of
+per-sample solves (``mode="per_sample"``, the differentiable cross-check).
+
+Small problems (7-DOF arm, one sphere, 1.5 s horizon, 0.2 s hold) keep the three compilations of
+this file to about two minutes of CPU.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import redman_jax  # noqa: F401  (x64)
+from redman_jax._controllers import CONTROLLERS
+from redman_jax._kinematics import end_effector_pose, poi_positions
+from redman_jax._obstacles import make_obstacles
+from redman_jax._robot import thesis_arm
+from redman_jax._scenario import Reference, Scenario, stack_scenarios
+from redman_jax._sim import SimParams, simulate, simulate_batch
+
+ARM = thesis_arm(7)
+CTRL = CONTROLLERS["gradient"]()
+GAINS = CTRL.default_gains()
+PARAMS = SimParams(guidance_samples=150, hold_samples=20)
+TS = 0.01
+
+
+def guided_scenario(offset, sphere_at=(0.0, 0.15, 0.3), radius=0.08, seed=0):
+    """Goal = start end-effector position + ``offset``; one sphere at start + ``sphere_at``."""
+    p0, quat0 = end_effector_pose(ARM, ARM.q0)
+    goal = p0 + jnp.asarray(offset)
+    c = np.asarray(p0) + np.asarray(sphere_at)
+    obs = make_obstacles(spheres=[(np.eye(3), c, (radius,))], capacities=(2, 1, 1))
+    cap = 2  # a guided run reads only the goal, the obstacles and ts from the scenario
+    z = jnp.zeros((cap, 3))
+    ref = Reference(p=jnp.broadcast_to(goal, (cap, 3)), v=z, a=z, quat=jnp.broadcast_to(quat0, (cap, 4)),
+                    omega=z, omega_dot=z, rot=jnp.zeros(cap), mask=jnp.ones(cap, bool),
+                    n_samples=jnp.asarray(cap), ts=jnp.asarray(TS))
+    return Scenario(obstacles=obs, goal_p=goal, goal_quat=quat0, reference=ref, seed=jnp.asarray(seed),
+                    seed_used=jnp.asarray(seed), valid=jnp.asarray(True), case="custom")
+
+
+# the sphere sits 0.3 m to the side of the straight path, inside the field's range (0.75 m)
+SCEN = guided_scenario((0.0, 0.35, -0.1))
+
+
+@pytest.fixture(scope="module")
+def horizon():
+    return simulate(ARM, SCEN, CTRL, GAINS, params=PARAMS)
+
+
+def test_sphere_is_clear_of_the_arm_at_start():
+    d = np.linalg.norm(np.asarray(poi_positions(ARM, ARM.q0)) - (np.asarray(end_effector_pose(ARM, ARM.q0)[0])
+                                                                + [0.0, 0.15, 0.3]), axis=1)
+    assert d.min() > 0.08 + 0.10
+
+
+def test_guided_run_reaches_the_goal_and_places_virtual_obstacles(horizon):
+    r = horizon
+    assert bool(r.success) and not bool(r.diverged) and int(r.status) == 0
+    assert float(r.metrics.final_pos_err) < 0.10
+    assert np.isfinite(float(r.time_to_goal)) and float(r.time_to_goal) < 1.3
+    assert float(r.f_obs[-1]) == 0.0
+    # the estimator ran at every sample start; its accepted estimates are the buffer's members
+    ok = np.asarray(r.estimate_valid)
+    assert ok.sum() >= 20 and np.asarray(r.virtual_mask).all()
+    # close to the goal the Newton step lands on the field's minimum, i.e. next to the goal
+    n = int(r.n_samples)
+    est = np.asarray(r.estimates)[n - 5:n]
+    assert np.all(np.linalg.norm(est - np.asarray(SCEN.goal_p), axis=1) < 0.05)
+
+
+def test_one_loop_stepper_agrees_with_per_sample_solves(horizon):
+    """The two drivers take different steps (the stepper carries the PID step size across sample
+    ends, the per-sample solves restart from the previous mean step), so they agree to the
+    tolerance's level (rtol 1e-5), not bit for bit."""
+    per = simulate(ARM, SCEN, CTRL, GAINS, params=SimParams(guidance_samples=150, hold_samples=20,
+                                                            mode="per_sample"))
+    assert bool(per.success) == bool(horizon.success)
+    assert int(per.n_samples) == int(horizon.n_samples)
+    np.testing.assert_allclose(np.asarray(horizon.q), np.asarray(per.q), rtol=0, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(horizon.p), np.asarray(per.p), rtol=0, atol=2e-5)
+    assert abs(float(horizon.metrics.final_pos_err) - float(per.metrics.final_pos_err)) < 2e-5
+    np.testing.assert_array_equal(np.asarray(horizon.estimate_valid), np.asarray(per.estimate_valid))
+    # the loop counts its steps like diffrax does: accepted + rejected
+    assert int(horizon.n_steps) == int(horizon.n_accepted) + int(horizon.n_rejected)
+    assert int(horizon.n_accepted) >= PARAMS.guidance_samples
+
+
+def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon):
+    scs = [SCEN, guided_scenario((0.1, -0.3, 0.0), seed=1), guided_scenario((-0.2, 0.2, 0.1), seed=2)]
+    bad = list(scs)
+    bad[1] = eqx.tree_at(lambda s: s.goal_p, bad[1], bad[1].goal_p.at[0].set(jnp.nan))
+    batch = simulate_batch(ARM, stack_scenarios(bad), CTRL, GAINS, params=PARAMS)
+    assert bool(batch.diverged[1]) and not bool(batch.metrics.success[1])
+    assert not bool(batch.diverged[0]) and not bool(batch.diverged[2])
+    np.testing.assert_allclose(np.asarray(batch.q[0]), np.asarray(horizon.q), rtol=0, atol=1e-12)
+    assert int(batch.n_steps[0]) == int(horizon.n_steps)
+    single2 = simulate(ARM, scs[2], CTRL, GAINS, params=PARAMS)
+    np.testing.assert_allclose(np.asarray(batch.q[2]), np.asarray(single2.q), rtol=0, atol=1e-12)
+    assert bool(batch.success[2]) == bool(single2.success)
