@@ -28,7 +28,8 @@ What is compared, per case and controller (scenarios and IK joint references fro
   (same work as JAX) but latched as booleans instead of integrated (they never enter the error
   norm, as in JAX).
 * The gradient-guided controller (cases agriculture, warehouse, simple, as in the study;
-  per-sample solves over its 6 s horizon with the local-minima estimator) is timed on the JAX
+  one adaptive loop over its 6 s horizon with the local-minima estimator updating between steps
+  at the sample ends, ``_sim._solve_guided_stepper``) is timed on the JAX
   side only: its estimator and guidance field have no NumPy version here.
 
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
@@ -517,7 +518,7 @@ def time_jax(arm, scen, ik, name, params):
 def jax_evals(res, N, uses_guidance, params):
     """Vector-field evaluations per member: FSAL Tsit5 costs 6 per attempted step plus one at the
     start and after every jump (horizon mode: the boundaries of the run's valid samples, none in
-    the padding up to the capacity ``N``; per-sample mode, the gradient runs: one per solve)."""
+    the padding up to the capacity ``N``; gradient runs: every sample end of the 6 s horizon)."""
     steps = np.asarray(res.n_steps, float)
     restarts = params.guidance_samples if uses_guidance else np.asarray(res.n_samples, float)
     return 6 * steps + restarts
@@ -586,7 +587,7 @@ def main(argv=None):
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()}), numpy {np.__version__}, "
           f"scipy {scipy.__version__}, x64={jax.config.jax_enable_x64}")
     print(f"JAX: simulate_batch over {args.seeds} seeds, Tsit5 rtol {rtol:g} atol {atol:g}, one horizon solve "
-          f"(gradient: per-sample solves over its {params.guidance_samples}-sample horizon); "
+          f"(gradient: one stepping loop over its {params.guidance_samples}-sample horizon); "
           f"cold = first call incl. compilation, warm = second call.")
     K = args.scipy_samples
     print(f"SciPy: NumPy closed loop, solve_ivp {args.method} rtol {rtol:g} atol {atol:g} per sample, one seed "

@@ -8,7 +8,8 @@ import pytest
 
 import redman_jax  # noqa: F401  (x64)
 from redman_jax._fields import FieldParams, total_potential
-from redman_jax._guidance import (PerfectParams, VirtualBuffer, estimate_local_minimum, perfect_controller,
+from redman_jax._guidance import (PerfectParams, VirtualBuffer, estimate_local_minimum, goal_field_minimum,
+                                  perfect_controller,
                                   perfect_controller_batch)
 from redman_jax._obstacles import make_obstacles, stack_obstacles
 
@@ -125,3 +126,36 @@ def test_bad_input_raises():
     obs, xs, xg, _ = simple_scene(1)
     with pytest.raises(ValueError, match="x0"):
         perfect_controller(np.zeros(2), xg, obs)
+
+
+@pytest.mark.parametrize("clearance", [0.12, 0.15, 0.2, 0.3])
+def test_goal_field_minimum_matches_the_radial_balance(clearance):
+    """One sphere: the minimum lies on the ray from the centre through the goal, where the goal's
+    pull 2 delta balances the obstacle's push -V_o'(c + delta) (SPEC 3, "minus" form), solved here
+    by bisection on the scalar equation."""
+    R, a, D = 0.1, 0.0005, 0.5
+    centre = np.array([0.4, -0.2, 0.6])
+    u = np.array([1.0, 2.0, -2.0]) / 3.0
+    goal = centre + (R + clearance) * u
+    obs = make_obstacles(spheres=[(np.eye(3), centre, (R,))], capacities=(2, 1, 1))
+
+    def balance(delta):
+        r = clearance + delta
+        dv = -a * (3 / r**4 - 2 / (D * r**3)) if r < D else 0.0
+        return 2 * delta + dv
+
+    lo, hi = 0.0, 1.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if balance(mid) < 0 else (lo, mid)
+    x, shift, gnorm = goal_field_minimum(jnp.asarray(goal), obs)
+    assert float(shift) == pytest.approx(lo, abs=1e-9)
+    np.testing.assert_allclose(np.asarray(x), goal + lo * u, atol=1e-9)
+    assert float(gnorm) < 1e-10
+
+
+def test_goal_field_minimum_without_obstacles_is_the_goal():
+    obs = make_obstacles(capacities=(1, 1, 1))
+    goal = jnp.asarray([0.3, 0.1, 0.5])
+    x, shift, _ = goal_field_minimum(goal, obs)
+    assert float(shift) == 0.0

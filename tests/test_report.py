@@ -340,3 +340,17 @@ def test_studydata_from_rows_only():
     assert (c.n, c.n_fail, c.n_collision) == (3, 1, 1)
     assert c.pos_err == pytest.approx((1e-3 * 10 + 3e-3 * 30) / 40)
     assert math.isnan(c.ori_err)
+
+
+def test_gradient_claims_count_scenes_with_a_displaced_field_minimum(tmp_path):
+    rows = synthetic_study(tmp_path)
+    grad = [r for r in rows if r["controller"] == "gradient" and r["case"] == "agriculture"]
+    for i, r in enumerate(grad):  # every failure and one success have the minimum off the goal
+        r["goal_field_shift"] = 0.15 if (not r["success"] or i == 0) else 0.05
+    write_table(tmp_path, rows)
+    why = _claims(tmp_path)["R2.a"].why
+    n_far = sum(not r["success"] for r in grad) + (1 if grad[0]["success"] else 0)
+    n_ok_near = sum(r["success"] for r in grad) - (1 if grad[0]["success"] else 0)
+    assert f"more than 0.10 m from the goal in {n_far}/{len(grad)} scenes" in why
+    assert f"success in the other {len(grad) - n_far}: {n_ok_near}" in why
+    assert "0.10 m from the goal" not in _claims(tmp_path)["R2.b"].why  # no column there: no note

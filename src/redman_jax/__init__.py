@@ -181,6 +181,7 @@ from ._guidance import (
     VirtualBuffer as VirtualBuffer,
     estimate_local_minimum as estimate_local_minimum,
     estimator_update as estimator_update,
+    goal_field_minimum as goal_field_minimum,
     PerfectParams as PerfectParams,
     PerfectResult as PerfectResult,
     perfect_controller as perfect_controller,

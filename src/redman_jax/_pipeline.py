@@ -166,8 +166,10 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     state, rs, env = _sample_inputs(arm, scen, controller, gains)
     t_ctrl = controller_time_per_sample(controller, gains, arm, state, rs, env, n_calls=n_timing_calls)
     t_lme = float("nan")
+    field_shift = np.full(R, np.nan)
     if controller.uses_guidance:
         t_lme = _lme_time(scen, n_timing_calls)
+        field_shift = _goal_field_shift(scen, params, gains)[:R]
     timings = scen_payload["timings"]
     rows = []
     m = res.metrics
@@ -199,6 +201,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
             "path_length": float(res.path_length[i]),
             "diverged": bool(res.diverged[i]),
             "n_steps": int(res.n_steps[i]),
+            "goal_field_shift": float(field_shift[i]),
             "sim_wall_s": t_sim / R,
         })
     ref = scen_payload["scenarios"].reference
@@ -220,6 +223,16 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     else:
         traces["p_d"] = np.asarray(ref.p).astype(np.float32)
     return {"rows": rows, "traces": traces, "timings": {"sim_s": t_sim, "t_controller_per_sample": t_ctrl}}
+
+
+def _goal_field_shift(scen, params, gains) -> np.ndarray:
+    """Per scenario: distance [m] from the goal to the guidance field's minimum near it
+    (:func:`~redman_jax._guidance.goal_field_minimum`); above 0.10 m no guided run can succeed."""
+    from ._guidance import field_params_or_default, goal_field_minimum
+
+    fp = field_params_or_default(params.field, gains)
+    shift = jax.jit(jax.vmap(lambda g, o: goal_field_minimum(g, o, fp)[1]))(scen.goal_p, scen.obstacles)
+    return np.asarray(shift)
 
 
 def _lme_time(scen, n_calls: int) -> float:

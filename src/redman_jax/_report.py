@@ -533,6 +533,7 @@ def _claims_r2(d: StudyData) -> list[Claim]:
                f"interval [{100 * lo:.0f} %, {100 * hi:.0f} %]; per arm: {per_arm}")
         if case == "warehouse":
             why += " (thesis per arm: 7dof 0/20, 8dof 2/20, 9dof 0/20)"
+        why += _field_shift_note(rows)
         out.append(Claim(cid, stmt, thesis, f"{k}/{n} ({100 * k / n:.0f} %)", _v(lo <= p_t <= hi), why))
     fails = [r for r in grows if run_cause(r) != "success"]
     n_coll = sum(run_cause(r) == "collision" for r in fails)
@@ -551,6 +552,21 @@ def _claims_r2(d: StudyData) -> list[Claim]:
                          f"{len(fails) - n_coll - n_div} of {len(fails)} not reached",
                          _v(n_coll == 0 and n_div == 0), why))
     return out
+
+
+def _field_shift_note(rows) -> str:
+    """How many scenes put the guidance field's minimum beyond the success radius (column
+    ``goal_field_shift``, see ``_guidance.goal_field_minimum``): a bound no controller beats."""
+    shifts = [_num(r.get("goal_field_shift")) for r in rows]
+    pairs = [(x, r) for x, r in zip(shifts, rows) if math.isfinite(x)]
+    if not pairs:
+        return ""
+    far = [r for x, r in pairs if x > 0.10]
+    near = [r for x, r in pairs if x <= 0.10]
+    ok_near = sum(run_cause(r) == "success" for r in near)
+    return (f"; the field's minimum lies more than 0.10 m from the goal in {len(far)}/{len(pairs)} "
+            f"scenes (unreachable for any controller that follows the field); success in the "
+            f"other {len(near)}: {ok_near}")
 
 
 def _fail_rate(d: StudyData, arms=None, cases=None, ctrls=None) -> tuple[int, int]:
