@@ -22,6 +22,7 @@ from redman_jax._nullspace import (
     oblique_projector,
     obstacle_gradients,
     obstacle_policy,
+    poi_jacobian_transpose,
     smallest_eigenvalue,
     task_priority,
 )
@@ -292,6 +293,49 @@ def test_obstacle_policy_is_potential_descent(arm9, rng):
         step = 1e-4 * h / np.linalg.norm(h)
         assert float(U(q + step)) < float(U(q))
         assert float(dmin(q + step)) > float(dmin(q))
+
+
+@pytest.mark.parametrize("name", ["arm9", "arm7"])
+def test_poi_jacobian_transpose_matches_point_jacobians(name, request, rng):
+    """``sum_i J_i^T f_i`` by suffix sums of forces and moments equals the einsum over the formed
+    point Jacobians (the telescoping prismatic segment of the 9-DOF arm included), for ``(m, 3)``
+    forces and for three planes, in float64 and float32."""
+    arm = request.getfixturevalue(name)
+    for q in _configs(arm, rng, 3, spread=0.8):
+        kin = rj.kinematics(arm, q)
+        pois = rj.poi_positions_from(arm, kin, q)
+        f = rng.normal(size=(arm.n_points, 3)) * 10.0 ** rng.uniform(-2, 3, (arm.n_points, 1))
+        ref = np.einsum("mjn,mj->n", np.asarray(rj.poi_jacobians_from(arm, kin, pois)), f)
+        h = np.asarray(poi_jacobian_transpose(arm, kin, pois, jnp.asarray(f)))
+        np.testing.assert_allclose(h, ref, rtol=1e-11, atol=1e-11 * np.abs(f).max())
+        planes = tuple(jnp.asarray(f[:, c]) for c in range(3))
+        np.testing.assert_allclose(np.asarray(poi_jacobian_transpose(arm, kin, pois, planes)), h,
+                                   rtol=0, atol=0)
+    arm32 = jax.tree.map(lambda x: x.astype(jnp.float32) if isinstance(x, jax.Array)
+                         and jnp.issubdtype(x.dtype, jnp.floating) else x, arm)
+    q32 = jnp.asarray(q, jnp.float32)
+    kin32 = rj.kinematics(arm32, q32)
+    h32 = poi_jacobian_transpose(arm32, kin32, rj.poi_positions_from(arm32, kin32, q32), jnp.asarray(f, jnp.float32))
+    assert h32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(h32), ref, rtol=2e-4, atol=2e-4 * np.abs(f).max())
+
+
+def test_obstacle_policy_without_jacobians_matches_einsum(arm9, rng):
+    """Point mode without precomputed Jacobians (forces as planes, :func:`poi_jacobian_transpose`)
+    equals the einsum over ``poi_jacobians_from`` (the path taken when ``poi_jac`` is given)."""
+    obs = _mixed_obstacles()
+    f = jax.jit(lambda q: obstacle_policy(arm9, rj.kinematics(arm9, q), q, obs, 1000.0, 0.05, 0.75))
+
+    def g(q):
+        kin = rj.kinematics(arm9, q)
+        pois = rj.poi_positions_from(arm9, kin, q)
+        return obstacle_policy(arm9, kin, q, obs, 1000.0, 0.05, 0.75, pois=pois,
+                               poi_jac=rj.poi_jacobians_from(arm9, kin, pois))
+
+    g = jax.jit(g)
+    for q in _configs(arm9, rng, 4, spread=0.8):
+        a, b = np.asarray(f(q)), np.asarray(g(q))
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
 
 
 def test_obstacle_policy_link_mode(arm9, rng):

@@ -66,7 +66,7 @@ from jaxtyping import Array, Float
 
 from ._control_types import AbstractController, ControlOutput, ControlState, Environment, RefSample
 from ._dynamics import dynamics_terms, rnea
-from ._kinematics import Kinematics, jacobian_from, kinematics, poi_jacobians_from, poi_positions_from
+from ._kinematics import Kinematics, jacobian_from, kinematics, poi_positions_from
 from ._math import as_float, clip_norm, quat_error, quat_mul, rot_to_quat
 from ._nullspace import (
     PolicyGains,
@@ -266,8 +266,7 @@ def _task_vector(b, m, S, jac_scaling):
 
 def _policy(arm, fr: _Frame, q, qd, env: Environment, pg: PolicyGains, mode, form):
     pois = poi_positions_from(arm, fr.kin, q)
-    pj = poi_jacobians_from(arm, fr.kin, pois) if mode == "point" else None
-    return nullspace_policy(arm, fr.kin, q, qd, env.obstacles, pg, mode, pois=pois, poi_jac=pj, form=form)
+    return nullspace_policy(arm, fr.kin, q, qd, env.obstacles, pg, mode, pois=pois, form=form)
 
 
 def _actuator_null(J_s, m, lam, M, tau0, projector):

@@ -64,6 +64,7 @@ __all__ = [
     "oblique_projector",
     "task_priority",
     "obstacle_gradients",
+    "poi_jacobian_transpose",
     "obstacle_policy",
     "joint_limit_policy",
     "damping_policy",
@@ -416,6 +417,12 @@ def task_priority(J1: Float[Array, "k1 n"], x1: Float[Array, " k1"], J2: Float[A
 # ----------------------------------------------------------------------------------------------
 
 
+def _select_max(x, y):
+    """``max(x, y)`` as a compare and a select: ``jnp.maximum`` lowers to a NaN-propagating
+    ``llvm.maximum`` that costs several instructions per lane on x86; equal for non-NaN operands."""
+    return jnp.where(x > y, x, y)
+
+
 def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
     """``grad V_o`` of one obstacle slot at every point, three planes ``(m,)`` (x, y, z).
 
@@ -426,40 +433,42 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
 
     Laid out for XLA's CPU fusion, which has no multi-output fusion: each of the three outputs
     recomputes whatever cheap element-wise work it depends on, while expensive ops (``sqrt``,
-    division) with several users are evaluated once. So the shared factors end in a division
-    (``slope / den``), the normal is never normalised separately, and there is one ``sqrt`` and at
-    most three divisions per point and slot (1.4x faster than normalising first; equal to the
-    reference to rounding, tested).
+    division) with several users are evaluated once. So there is exactly one division per point and
+    slot: ``V_o' / |n|`` (and ``1 / rho`` for cylinders) is folded into one quotient
+    ``num / (r^4 |n|)`` that the three outputs share; ``max``/``min`` are compare-and-select (see
+    :func:`_select_max`). Equal to the reference to rounding (tested).
     """
     sgn = -1.0 if form == "minus" else 1.0
     d = tuple(X[j] - p[j] for j in range(3))  # world offsets
 
-    def slope_of(sdf):  # V_o'(r) = -a (3D -/+ 2r) / (D r^4), r = max(sdf, clamp)
-        r = jnp.maximum(sdf, clamp)
+    def num_r4(sdf):  # V_o'(r) = num / r^4 = -a (3D -/+ 2r) / (D r^4), r = max(sdf, clamp)
+        r = jnp.where(sdf > clamp, sdf, clamp)
         r2 = r * r
         num = jnp.where(mask & (sdf <= D), (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
-        return num / jnp.where(r > 0, r2 * r2, 1.0)
+        return num, jnp.where(r > 0, r2 * r2, 1.0)
 
     if kind == "spheres":
         r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
         pos = r2 > 0
         rr = jnp.sqrt(jnp.where(pos, r2, 1.0))
-        w = jnp.where(pos, slope_of(jnp.where(pos, rr, 0.0) - dims[0]), 0.0) / rr
+        num, r4 = num_r4(jnp.where(pos, rr, 0.0) - dims[0])
+        w = jnp.where(pos, num, 0.0) / (r4 * rr)
         return tuple(w * d[j] for j in range(3))
     xl = tuple(R[0, i] * d[0] + R[1, i] * d[1] + R[2, i] * d[2] for i in range(3))  # R^T (x - p)
     if kind == "boxes":
         u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
-        o = [jnp.maximum(v, 0.0) for v in u]
+        o = [jnp.where(v > 0, v, 0.0) for v in u]
         on2 = o[0] * o[0] + o[1] * o[1] + o[2] * o[2]
         out = on2 > 0
         on = jnp.sqrt(jnp.where(out, on2, 1.0))
-        sdf = jnp.where(out, on, jnp.minimum(jnp.maximum(jnp.maximum(u[0], u[1]), u[2]), 0.0))
-        slope = slope_of(sdf)
-        den = jnp.where(out, on, 1.0)
+        umax = _select_max(_select_max(u[0], u[1]), u[2])
+        sdf = jnp.where(out, on, jnp.where(umax < 0, umax, 0.0))
+        num, r4 = num_r4(sdf)
+        c = num / (r4 * jnp.where(out, on, 1.0))  # V_o' / |n| outside, V_o' inside
         pick0 = (u[0] >= u[1]) & (u[0] >= u[2])  # inside: the nearest face
         pick1 = ~pick0 & (u[1] >= u[2])
         picks = (pick0, pick1, ~pick0 & ~pick1)
-        gl = tuple(jnp.where(xl[i] < 0, -slope, slope) * jnp.where(out, o[i], picks[i].astype(on.dtype)) / den
+        gl = tuple(jnp.where(xl[i] < 0, -c, c) * jnp.where(out, o[i], picks[i].astype(c.dtype))
                    for i in range(3))
     elif kind == "cylinders":
         rho2 = xl[0] * xl[0] + xl[1] * xl[1]
@@ -467,19 +476,42 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
         rho = jnp.sqrt(jnp.where(rpos, rho2, 1.0))
         d1 = jnp.where(rpos, rho, 0.0) - dims[0]
         d2 = jnp.abs(xl[2]) - dims[1]
-        o1, o2 = jnp.maximum(d1, 0.0), jnp.maximum(d2, 0.0)
+        o1, o2 = jnp.where(d1 > 0, d1, 0.0), jnp.where(d2 > 0, d2, 0.0)
         on2 = o1 * o1 + o2 * o2
         out = on2 > 0
         on = jnp.sqrt(jnp.where(out, on2, 1.0))
-        sdf = jnp.where(out, on, jnp.minimum(jnp.maximum(d1, d2), 0.0))
-        slope = slope_of(sdf)
-        den = jnp.where(out, on, 1.0)
-        w_rad = jnp.where(rpos, slope * jnp.where(out, o1, (d1 >= d2).astype(on.dtype)), 0.0) / (den * rho)
-        w_ax = jnp.where(xl[2] < 0, -slope, slope) * jnp.where(out, o2, (d1 < d2).astype(on.dtype)) / den
+        dmax = _select_max(d1, d2)
+        sdf = jnp.where(out, on, jnp.where(dmax < 0, dmax, 0.0))
+        num, r4 = num_r4(sdf)
+        den = r4 * jnp.where(out, on, 1.0)
+        w_rad = jnp.where(rpos, num * jnp.where(out, o1, (d1 >= d2).astype(on.dtype)), 0.0) / (den * rho)
+        w_ax = jnp.where(xl[2] < 0, -num, num) * jnp.where(out, o2, (d1 < d2).astype(on.dtype)) / den
         gl = (w_rad * xl[0], w_rad * xl[1], w_ax)
     else:  # pragma: no cover
         raise ValueError(kind)
     return tuple(R[j, 0] * gl[0] + R[j, 1] * gl[1] + R[j, 2] * gl[2] for j in range(3))
+
+
+def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e-3) -> tuple:
+    """``sum_o grad V_o`` at the points ``X = (x, y, z)`` (three ``(m,)`` planes), as three planes.
+
+    One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators, one
+    :func:`_slot_gradient` per step."""
+    from ._fields import _check_form
+
+    _check_form(form)
+    g = tuple(jnp.zeros_like(X[0]) for _ in range(3))
+    for kind in ("spheres", "boxes", "cylinders"):
+        fam = getattr(obs, kind)
+        if fam.capacity == 0:
+            continue
+
+        def body(acc, slot, kind=kind):
+            c = _slot_gradient(kind, *slot, X, a, D, form, clamp)
+            return tuple(x + y for x, y in zip(acc, c)), None
+
+        g, _ = jax.lax.scan(body, g, (fam.R, fam.p, fam.dims, fam.mask))
+    return g
 
 
 def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minus", clamp=1e-3,
@@ -500,22 +532,53 @@ def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minu
         return jax.vmap(lambda x: obstacle_field_gradient(obs, x, a, D, form=form, clamp=clamp))(points)
     if impl != "fused":
         raise ValueError(f"obstacle_gradients: impl must be 'fused' or 'reference', got {impl!r}")
-    from ._fields import _check_form
-
-    _check_form(form)
-    X = tuple(points[:, j] for j in range(3))
-    g = tuple(jnp.zeros(points.shape[:1], points.dtype) for _ in range(3))
-    for kind in ("spheres", "boxes", "cylinders"):
-        fam = getattr(obs, kind)
-        if fam.capacity == 0:
-            continue
-
-        def body(acc, slot, kind=kind):
-            c = _slot_gradient(kind, *slot, X, a, D, form, clamp)
-            return tuple(x + y for x, y in zip(acc, c)), None
-
-        g, _ = jax.lax.scan(body, g, (fam.R, fam.p, fam.dims, fam.mask))
+    g = _obstacle_gradient_planes(obs, tuple(points[:, j] for j in range(3)), a, D, form, clamp)
     return jnp.stack(g, axis=1)
+
+
+def poi_jacobian_transpose(arm: Arm, kin: Kinematics, pois: Float[Array, "m 3"], forces
+                           ) -> Float[Array, " n"]:
+    """``sum_i J_poi,i^T f_i`` over the points of interest without forming their ``3 x n`` Jacobians.
+
+    Column ``j`` of a point's Jacobian is ``v_j + w_j x p`` (zero beyond the point's link), so
+    ``(v_j + w_j x p) . f = v_j . f + w_j . (p x f)`` and the product is ``v_j . F_j + w_j . T_j``
+    with ``F_j``, ``T_j`` the suffix sums over the links ``>= j`` of the forces and of their moments
+    about the world origin; on a prismatic (telescoping) segment the own-link terms are weighted by
+    the points' fractions ``k / P``, as in :func:`~redman_jax._kinematics.poi_jacobians_from`.
+
+    ``forces``: ``(m, 3)`` or three ``(m,)`` planes. Structure-of-arrays (about 4x cheaper than the
+    Jacobians and an einsum under ``vmap`` on CPU); equal to ``einsum("mjn,mj->n", poi_jacobians_from
+    (...), f)`` to rounding (tested).
+    """
+    n, P = arm.n_dof, arm.points_per_link
+    pri = arm.prismatic_mask
+    if not isinstance(forces, tuple):
+        forces = tuple(forces[:, c] for c in range(3))
+    f = forces
+    p = tuple(pois[:, c] for c in range(3))
+    t = (p[1] * f[2] - p[2] * f[1], p[2] * f[0] - p[0] * f[2], p[0] * f[1] - p[1] * f[0])
+    comps = f + t  # force (x, y, z), then moment (x, y, z)
+
+    def link_sum(x, link, weighted):
+        out = None
+        for k in range(P):
+            v = x[link * P + k]
+            if weighted:
+                v = v * ((k + 1) / P)
+            out = v if out is None else out + v
+        return out
+
+    S = kin.S  # rows (w, v)
+    h = [None] * n
+    beyond = None  # sums over the links after the current one
+    for link in reversed(range(n)):
+        full = [link_sum(x, link, False) for x in comps]
+        own = [link_sum(x, link, True) for x in comps] if pri[link] else full
+        tot = own if beyond is None else [b + o for b, o in zip(beyond, own)]
+        h[link] = (S[link, 3] * tot[0] + S[link, 4] * tot[1] + S[link, 5] * tot[2]
+                   + S[link, 0] * tot[3] + S[link, 1] * tot[4] + S[link, 2] * tot[5])
+        beyond = full if beyond is None else [b + x for b, x in zip(beyond, full)]
+    return jnp.stack(h)
 
 
 def _link_midpoint_jacobians(arm: Arm, kin: Kinematics, pois) -> tuple:
@@ -547,15 +610,18 @@ def obstacle_policy(arm: Arm, kin: Kinematics, q, obs, gain, a, D, mode: str = "
         mode: ``"point"`` (default: each point's own 3 x n Jacobian, exact on a telescoping prismatic
             segment) or ``"link"`` (the thesis: the forces of a link's points summed and applied
             through one rigid link Jacobian at the segment midpoint; moments ignored).
-        pois, poi_jac: precomputed point positions / Jacobians (else computed from ``kin``).
+        pois, poi_jac: precomputed point positions (else computed from ``kin``) / point Jacobians
+            (if given, ``J^T f`` is their einsum; else :func:`poi_jacobian_transpose`, which never
+            forms them).
         form: obstacle potential form (``"minus"``, SPEC E4).
     """
     if pois is None:
         pois = poi_positions_from(arm, kin, q)
+    if mode == "point" and poi_jac is None:  # forces as planes, J^T f by suffix sums
+        g = _obstacle_gradient_planes(obs, tuple(pois[:, j] for j in range(3)), a, D, form)
+        return poi_jacobian_transpose(arm, kin, pois, tuple(-gain * gj for gj in g))
     f = -gain * obstacle_gradients(obs, pois, a, D, form)  # (m, 3) forces, one fused evaluation
     if mode == "point":
-        if poi_jac is None:
-            poi_jac = poi_jacobians_from(arm, kin, pois)
         return jnp.einsum("mjn,mj->n", poi_jac, f)
     if mode == "link":
         _, Jl = _link_midpoint_jacobians(arm, kin, pois)
