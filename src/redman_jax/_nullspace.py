@@ -7,9 +7,9 @@ Projection
   literally). ``sigma_min`` is *not* taken from a full SVD: ``sigma_min^2`` is the smallest eigenvalue
   of the small Gram matrix ``G = J J^T`` (``k x k``, ``k <= 6``), found by Laguerre's iteration on
   ``det(G - mu I)`` from ``mu = 0`` (all roots real: monotone, cubically convergent, linearly near
-  a double root; eight steps of a scalar-unrolled ``k x k`` Cholesky inverse). It is about 10x cheaper than ``eigvalsh`` under ``vmap``
-  on CPU (``benchmarks/bench_controllers.py``) and has an exact derivative ``d mu = v^T dG v``
-  (``custom_jvp``).
+  a double root; eight steps of a scalar-unrolled ``k x k`` Cholesky inverse). It is about 10x
+  cheaper than ``eigvalsh`` under ``vmap`` on CPU (``benchmarks/bench_controllers.py``) and has an
+  exact derivative ``d mu = v^T dG v`` (``custom_jvp``).
 * **Row masks.** Orientation control switches per sample (3.13-3.14) without changing shapes:
   the inactive rows of the 6-row task are zeroed and excluded from ``sigma_min`` (their Gram block is
   shifted far above the spectrum). ``J^T (J J^T + lam^2 I)^-1`` is block diagonal in active/inactive
@@ -156,13 +156,6 @@ def _cho_solve_rows(L, inv_diag, B):
             s = s - L[p][i] * x[p]
         x[i] = s * inv_diag[i]
     return jnp.stack(x)
-
-
-def _spd_inverse(A, floor):
-    """Inverse of a symmetric positive definite ``k x k`` matrix (unrolled Cholesky)."""
-    k = A.shape[-1]
-    L, inv_diag = _cholesky_rows(A, floor)
-    return _cho_solve_rows(L, inv_diag, jnp.eye(k, dtype=A.dtype))
 
 
 def _spd_inverse_scalars(A, floor):

@@ -23,8 +23,8 @@ size proposed by the PID controller carries over the boundaries, so no step-size
 every sample. ``mode="per_sample"`` is a ``lax.scan`` over samples with one warm-started
 ``diffeqsolve`` per sample (``dt0`` = the previous sample's mean accepted step), a cross-check.
 Under ``vmap`` a single horizon solve costs ``max_members(total steps)`` loop iterations, while a
-scan over per-sample solves costs ``sum_k max_members(steps in sample k)`` (3.5x more on the
-simple case's 20 gradient-guided seeds).
+scan over per-sample solves costs ``sum_k max_members(steps in sample k)`` (4x more on the
+simple case's 20 gradient-guided seeds, ``benchmarks/bench_guided.py``).
 
 **Gradient-guided runs** change a discrete state at every sample start (the local-minima
 estimator's virtual-obstacle buffer and the orientation latch), which a single ``diffeqsolve``
@@ -475,6 +475,28 @@ def _solve_per_sample(arm, controller, gains, ref, jref, env, y0, params):
     return ys, stats.sum(0), jnp.max(status)
 
 
+def _guided_update(arm, scenario, fparams, params, y, buf, rot):
+    """The discrete update at a sample start of a gradient-guided run (thesis 3.24-3.27): one
+    estimate from the end-effector position pushed into the virtual-obstacle buffer, and the
+    orientation latch (on within ``guidance_rot_radius`` of the goal, never off again).
+    Returns ``(buf, rot, x_min, valid)``."""
+    from ._guidance import estimator_update
+
+    x = kinematics(arm, y.q).ee[:3, 3]
+    buf, x_min, valid = estimator_update(x, scenario.goal_p, scenario.obstacles, buf, fparams,
+                                         params.lme_mu, params.lme_max_jump)
+    rot = jnp.maximum(rot, (jnp.linalg.norm(x - scenario.goal_p) < params.guidance_rot_radius)
+                      .astype(rot.dtype))
+    return buf, rot, x_min, valid
+
+
+def _guided_args(scenario, env0, buf, rot, n: int):
+    """What a gradient-guided sample holds: the goal at rest as the reference sample, and the
+    environment with the buffer as its virtual obstacles. Returns ``(rs, env)``."""
+    env = eqx.tree_at(lambda e: (e.virtual_p, e.virtual_mask), env0, (buf.p, buf.mask))
+    return _goal_sample(scenario.goal_p, scenario.goal_quat, rot, n, rot.dtype), env
+
+
 def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, params, N, ts):
     """Gradient-guided run as *one* adaptive integration over ``[0, N t_s]`` (``mode="horizon"``).
 
@@ -489,11 +511,11 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
     the tolerance level.
 
     Why: under ``vmap`` a scan of per-sample solves costs ``sum_k max_members(steps in sample
-    k)`` loop iterations; this loop costs ``max_members(total steps)`` (measured on the simple
-    case, 20 seeds: 17767 against 5147, 3.5x). Forward only: differentiate gradient-guided runs
+    k)`` loop iterations; this loop costs ``max_members(total steps)`` (9-DOF simple case, 20
+    seeds: 18514 against 4590, ``benchmarks/bench_guided.py``). Forward only: differentiate gradient-guided runs
     with ``mode="per_sample"`` (diffrax's checkpointed adjoint).
     """
-    from ._guidance import VirtualBuffer, estimator_update
+    from ._guidance import VirtualBuffer
 
     dtype = y0.q.dtype
     n = arm.n_dof
@@ -509,17 +531,10 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
     error_order = solver.error_order(term)
 
     def sample_start(y, buf, rot):
-        """The discrete update at a sample start: estimate, push, latch; the held args."""
-        x = kinematics(arm, y.q).ee[:3, 3]
-        buf, x_min, valid = estimator_update(x, scenario.goal_p, scenario.obstacles, buf, fparams,
-                                             params.lme_mu, params.lme_max_jump)
-        rot = jnp.maximum(rot, (jnp.linalg.norm(x - scenario.goal_p) < params.guidance_rot_radius)
-                          .astype(dtype))
-        return buf, rot, x_min, valid
+        return _guided_update(arm, scenario, fparams, params, y, buf, rot)
 
     def held_args(buf, rot):
-        env = eqx.tree_at(lambda e: (e.virtual_p, e.virtual_mask), env0, (buf.p, buf.mask))
-        return _goal_sample(scenario.goal_p, scenario.goal_quat, rot, n, dtype), env
+        return _guided_args(scenario, env0, buf, rot, n)
 
     buf, rot, x_min, valid = sample_start(y0, VirtualBuffer.empty(params.buffer_size, dtype),
                                           jnp.zeros((), dtype))
@@ -657,7 +672,7 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
     with the discrete updates between steps (:func:`_solve_guided_stepper`, forward only);
     ``mode="per_sample"``: a scan of per-sample solves (differentiable). Runs the full 6 s horizon
     and applies the stop rule afterwards (exact, as stopping does not change the past)."""
-    from ._guidance import VirtualBuffer, estimator_update, field_params_or_default
+    from ._guidance import VirtualBuffer, field_params_or_default
 
     dtype = scenario.goal_p.dtype
     n = arm.n_dof
@@ -670,13 +685,8 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
 
     def body(carry, k):
         y, dt0, buf, rot = carry
-        x = kinematics(arm, y.q).ee[:3, 3]
-        buf, x_min, valid = estimator_update(x, scenario.goal_p, scenario.obstacles, buf, fparams,
-                                             params.lme_mu, params.lme_max_jump)
-        rot = jnp.maximum(rot, (jnp.linalg.norm(x - scenario.goal_p) < params.guidance_rot_radius)
-                          .astype(dtype))
-        env = eqx.tree_at(lambda e: (e.virtual_p, e.virtual_mask), env0, (buf.p, buf.mask))
-        rs = _goal_sample(scenario.goal_p, scenario.goal_quat, rot, n, dtype)
+        buf, rot, x_min, valid = _guided_update(arm, scenario, fparams, params, y, buf, rot)
+        rs, env = _guided_args(scenario, env0, buf, rot, n)
         y1, dt_next, stats, status = _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0,
                                                    jnp.asarray(True), params)
         return (y1, dt_next, buf, rot), (y1, stats, status, x_min, valid, rot)
