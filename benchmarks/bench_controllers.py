@@ -87,7 +87,7 @@ def main():
     ap.add_argument("--batches", default="1,20,1024")
     ap.add_argument("--dof", type=int, default=9)
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient,pid,velocity_original,impedance")
-    ap.add_argument("--calls", type=int, default=2048, help="states evaluated per timing (>= 5 calls)")
+    ap.add_argument("--calls", type=int, default=2048, help="at least this many states per timing (and >= 10 calls, >= 0.3 s)")
     args = ap.parse_args()
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}")
@@ -105,15 +105,19 @@ def main():
                      q=qs + 0.01, qd=jnp.zeros_like(qs), qdd=jnp.zeros_like(qs))
 
     def timed(f, *a, batch):
+        """(median, min) us per state over repeats of at least ``--calls`` states and 0.3 s, and the
+        compile + first call time. The median of many repeats, not the mean of a few: on a shared
+        2-core machine single calls vary by 30 % or more."""
         t0 = time.perf_counter()
         jax.block_until_ready(f(*a))
         tc = time.perf_counter() - t0
-        reps = max(5, args.calls // batch)
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            r = f(*a)
-        jax.block_until_ready(r)
-        return (time.perf_counter() - t0) / reps / batch * 1e6, tc
+        ts, start = [], time.perf_counter()
+        while len(ts) < 10 or ((len(ts) * batch < args.calls or time.perf_counter() - start < 0.3)
+                               and len(ts) < 2000):
+            t1 = time.perf_counter()
+            jax.block_until_ready(f(*a))
+            ts.append(time.perf_counter() - t1)
+        return float(np.median(ts)) / batch * 1e6, float(np.min(ts)) / batch * 1e6, tc
 
     rows = []
     names = args.controllers.split(",")
@@ -136,15 +140,15 @@ def main():
             if B == 1:
                 one = jax.tree.map(lambda x: x[0], (sl[0], sl[1], z, sl[2]))
                 f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
-                us, tc = timed(f, gains, *one, batch=1)
+                us, us_min, tc = timed(f, gains, *one, batch=1)
             else:
                 f = jax.jit(jax.vmap(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref)))
-                us, tc = timed(f, sl[0], sl[1], z, sl[2], batch=B)
+                us, us_min, tc = timed(f, sl[0], sl[1], z, sl[2], batch=B)
             base = THESIS_MS.get(name.replace("_naive", ""))
             ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
-            rows.append((name, B, us, tc))
-            print(f"{name:20s} batch {B:5d}: {us:9.2f} us/state  (thesis/this {ratio})  compile {tc:5.1f} s",
-                  flush=True)
+            rows.append((name, B, us, us_min, tc))
+            print(f"{name:20s} batch {B:5d}: {us:9.2f} us/state median, {us_min:7.2f} min  (thesis/this {ratio})"
+                  f"  compile {tc:5.1f} s", flush=True)
     return rows
 
 

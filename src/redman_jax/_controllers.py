@@ -65,7 +65,7 @@ from jax.scipy.linalg import cho_factor, cho_solve
 from jaxtyping import Array, Float
 
 from ._control_types import AbstractController, ControlOutput, ControlState, Environment, RefSample
-from ._dynamics import dynamics_terms, rnea
+from ._dynamics import dynamics_terms, prefix_sum, rnea
 from ._kinematics import Kinematics, jacobian_from, kinematics, poi_positions_from
 from ._math import as_float, clip_norm, quat_error, quat_mul, rot_to_quat
 from ._nullspace import (
@@ -215,7 +215,7 @@ def jdot_qdot_from(kin: Kinematics, qd: Float[Array, " n"]) -> Float[Array, "6"]
     S = kin.S
     w, v = S[:, :3], S[:, 3:]
     tw = S * qd[:, None]
-    V = jnp.cumsum(tw, axis=0)
+    V = prefix_sum(tw)
     Vp = V - tw  # V_{j-1}
     wV, vV = Vp[:, :3], Vp[:, 3:]
     sd_w = jnp.cross(wV, w)

@@ -121,9 +121,22 @@ def _apply_inertia(m, h, Io, w, v):
             m[..., None] * v - jnp.cross(h, w))
 
 
+def prefix_sum(x, reverse: bool = False):
+    """``y_i = sum_{j <= i} x_j`` (``reverse``: ``sum_{j >= i}``) along the first, static axis.
+
+    A product with a constant triangular matrix of ones instead of ``jnp.cumsum``: on CPU
+    ``cumsum`` lowers to a ``reduce_window`` per call (38 of them in one forward-dynamics pass).
+    At batch 1024 (interleaved timing, 9-DOF arm) forward dynamics took 1.84 us per state against
+    2.12 with ``cumsum`` and 1.89 with unrolled adds, and compiled in 1.6 s against 1.75 and 2.5.
+    """
+    n = x.shape[0]
+    ones = np.triu(np.ones((n, n))) if reverse else np.tril(np.ones((n, n)))
+    return jnp.tensordot(jnp.asarray(ones, x.dtype), x, axes=1)
+
+
 def _suffix_sum(x):
     """``y_i = sum_{j >= i} x_j`` along the first axis."""
-    return jnp.cumsum(x[::-1], axis=0)[::-1]
+    return prefix_sum(x, reverse=True)
 
 
 def _mass_matrix_from(arm: Arm, kin: Kinematics, body=None) -> Float[Array, "n n"]:
@@ -179,11 +192,11 @@ def rnea(arm: Arm, q, qd, qdd, *, gravity: bool = True, kin: Kinematics | None =
     S = kin.S
     dtype = S.dtype
     Sw, Sv = S[:, :3], S[:, 3:]
-    V = jnp.cumsum(S * qd[:, None], axis=0)  # (n, 6)
+    V = prefix_sum(S * qd[:, None])  # (n, 6)
     Vp = jnp.concatenate([jnp.zeros((1, 6), dtype), V[:-1]], axis=0)
     wp, vp = Vp[:, :3], Vp[:, 3:]
     Sdot = jnp.concatenate([jnp.cross(wp, Sw), jnp.cross(vp, Sw) + jnp.cross(wp, Sv)], axis=1)
-    A = jnp.cumsum(S * qdd[:, None] + Sdot * qd[:, None], axis=0)
+    A = prefix_sum(S * qdd[:, None] + Sdot * qd[:, None])
     if gravity:
         A = A + jnp.concatenate([jnp.zeros(3, dtype), -arm.gravity.astype(dtype)])
     w, v = V[:, :3], V[:, 3:]
