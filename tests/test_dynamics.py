@@ -29,7 +29,7 @@ from redman_jax._kinematics import kinematics
 from redman_jax._robot import thesis_arm
 from redman_jax._urdf import example_robot_data_file, from_urdf
 
-from conftest import fd_jacobian, fd_jacobian5
+from conftest import fd_jacobian
 
 
 def _arms():
@@ -186,7 +186,7 @@ def test_grad_through_forward_dynamics():
         # The loss (~3e2) carries rounding noise ~1e-10: cond(M) ~ 8e3 amplifies the rounding of M.
         # A two-point stencil at eps 1e-5 turns that into ~1e-5 of error (it once passed by luck);
         # the five-point one at eps 1e-3 gives ~1e-7 (rounding) + ~1e-9 (truncation, O(eps^4)).
-        np.testing.assert_allclose(np.asarray(grads[k]), fd_jacobian5(f, x, eps=1e-3), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(grads[k]), fd_jacobian(f, x, eps=1e-3, order=4), rtol=1e-6, atol=1e-6)
     # forward mode agrees with reverse mode (rounding only)
     rev = sum(float(np.dot(np.asarray(g), dk)) for g, dk in zip(grads, d))
     assert abs(float(jvp) - rev) < 1e-11 * sum(np.abs(np.asarray(g)).sum() for g in grads)
