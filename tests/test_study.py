@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -221,3 +222,41 @@ def test_gain_overrides_from_a_tuned_gains_file(tmp_path):
         pipe.make_gains(ctrl, {"kq": 1.0})
     cfg = SweepConfig(out=str(tmp_path), gains={"acceleration": overrides}, figures=False, progress=False)
     assert cfg.gains["acceleration"]["kp"] == 444.5
+
+
+def test_compiled_programs_are_dropped_after_each_unit(monkeypatch, tmp_path):
+    """Every unit compiles its own programs; a worker that kept them all ran out of memory mappings
+    (vm.max_map_count) part-way through the full study. _run_group drops them after each unit."""
+    import jax
+
+    calls, cleared = [], []
+    _fake_pipeline(monkeypatch, calls)
+    real_clear = jax.clear_caches
+    monkeypatch.setattr(jax, "clear_caches", lambda: (cleared.append(len(calls)), real_clear()))
+    run_sweep(_config(tmp_path))
+    # after each of the 5 units (2 scenario builds, 3 runs), right after the unit's own work
+    assert cleared == [1, 2, 3, 4, 5]
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
+def test_clear_caches_returns_memory_mappings():
+    """The mechanism the sweep relies on: a compiled program's memory mappings go with clear_caches."""
+    import gc
+
+    import jax
+    import jax.numpy as jnp
+
+    def maps():
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+
+    jax.clear_caches()
+    gc.collect()
+    base = maps()
+    for k in range(20):  # 20 distinct programs
+        jax.block_until_ready(jax.jit(lambda x, k=k: jnp.sin(x) * k + jnp.cumsum(x) ** 2)(jnp.ones(8 + k)))
+    grown = maps()
+    jax.clear_caches()
+    gc.collect()
+    assert grown - base >= 20  # each executable holds mappings of its own
+    assert maps() - base < (grown - base) / 4

@@ -208,11 +208,19 @@ def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
 def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
     """Run ``units`` (the missing units of one (arm, case) group, in order); ``report(name,
     seconds)`` after each (the progress bar; in a worker, the parent's queue)."""
+    import jax
+
     store = UnitStore(Path(cfg.out))
     arms = {}
     for unit in units:
         t0 = time.perf_counter()
         _run_unit(cfg, store, arms, unit)
+        # Units share no compiled programs (each has its own shapes), and every XLA CPU executable
+        # keeps its code in memory mappings: about 2,000-2,600 per simulation, so a process that
+        # kept them all reached Linux's vm.max_map_count (65,530) after about 25 units, and the
+        # next compile died with "LLVM compilation error: Cannot allocate memory" (a full study on
+        # 2 cores lost a worker that way twice). Dropping the caches returns the mappings.
+        jax.clear_caches()
         if report is not None:
             report((unit[4], time.perf_counter() - t0))
 
