@@ -34,7 +34,12 @@ a sample end, so one loop covers the horizon (forward only). ``mode="per_sample"
 scan of per-sample solves, which is differentiable.
 
 Default solver: ``Tsit5`` with ``rtol = 1e-5``, ``atol = 1e-7`` (SPEC U9: adaptive, non-stiff, a
-little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6).
+little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6). Evidence (``benchmarks/
+bench_tolerance.py``, 9-DOF arm, against a reference at rtol 1e-9 / atol 1e-11): the study's
+metrics deviate by at most 1.5e-4 relative in inspection and welding (seeds 1-4, three tracking
+controllers), 3.4e-5 in warehouse for the tracking controllers and 7.3e-3 for the gradient-guided
+final position (seeds 1-2), with every success, collision and joint-limit flag equal. The warehouse
+acceleration reference needs ``--ref-budget 1024``: it takes 83,423 steps.
 
 **Adjoint.** ``RecursiveCheckpointAdjoint`` (discretise-then-optimise): gradients are exact for the
 computed discrete trajectory, memory is bounded by binomial checkpointing over ``max_steps``,
