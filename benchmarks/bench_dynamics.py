@@ -116,22 +116,16 @@ def time_call(fn, min_time, min_rep=5, max_rep=200, warmup=3):
 
 def paired_ratios(ours, B, pin_call, qp, vs, taus, rounds=15):
     """Per-round ratios (ours per state / pin.aba per call), the two timed back to back in each
-    round: on a shared machine whose speed drifts by tens of percent within a minute, the ratio of
+    round (one loop of ``pin_call`` over the states, then the median of 5 calls of ours): on a
+    shared machine whose speed drifts by tens of percent within a minute, the ratio of
     neighbouring measurements is the figure that holds."""
     for _ in range(3):
         jax.block_until_ready(ours())
     out = []
     for _ in range(rounds):
-        t0 = time.perf_counter()
-        for q, v, t in zip(qp, vs, taus):
-            pin_call(q, v, t)
-        p = (time.perf_counter() - t0) / len(qp)
-        ts = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            jax.block_until_ready(ours())
-            ts.append(time.perf_counter() - t0)
-        out.append(statistics.median(ts) / B / p)
+        p, _ = pinocchio_time(pin_call, qp, vs, taus, reps=1)
+        t, _ = time_call(ours, 0.0, min_rep=5, max_rep=5, warmup=0)
+        out.append(t / B / p)
     return out
 
 

@@ -231,7 +231,11 @@ _CASE_WEIGHT = {"warehouse": 3, "agriculture": 3, "simple": 2, "welding": 2, "in
 
 def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     """Run (or resume) a sweep; returns the results folder. (``_worker_init``: a picklable callable
-    each worker process runs first; tests install their stand-in units with it.)"""
+    each worker process runs first; tests install their stand-in units with it.)
+
+    Every unit ends with ``jax.clear_caches()`` (see :func:`_run_group`): with ``jobs=1`` the units
+    run in the calling process, whose other jitted functions then compile again on their next call.
+    """
     out = Path(cfg.out)
     store = UnitStore(out)
     atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
