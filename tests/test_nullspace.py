@@ -419,3 +419,87 @@ def test_bad_arguments_raise():
         oblique_projector(jnp.ones((3, 7)), jnp.eye(7), level="joint")
     with pytest.raises(ValueError, match="J must be 2-D"):
         damped_pinv(jnp.ones(7))
+
+
+# ----------------------------------------------------------------------------------------------
+# work layout of the slot passes (ObstacleSet.slots_per_step) and compaction
+
+
+def _many_obstacles(rng, k=40, active=33):
+    """``k`` slots per family, the first ``active`` of them in use, shuffled so that active and
+    padded slots alternate (what :func:`compact_obstacles` reorders)."""
+    def rot():
+        Q, R = np.linalg.qr(rng.normal(size=(3, 3)))
+        Q = Q * np.sign(np.diag(R))
+        return Q if np.linalg.det(Q) > 0 else -Q
+
+    centre = lambda: rng.uniform([-0.9, -0.9, 0.1], [0.9, 0.9, 1.6])
+    obs = rj.make_obstacles(
+        spheres=[(np.eye(3), centre(), [rng.uniform(0.03, 0.1)]) for _ in range(active)],
+        boxes=[(rot(), centre(), rng.uniform(0.03, 0.12, 3)) for _ in range(active)],
+        cylinders=[(rot(), centre(), rng.uniform(0.03, 0.1, 2)) for _ in range(active)],
+        capacities=(k, k, k))
+    perm = rng.permutation(k)
+    shuffle = lambda f: jax.tree.map(lambda x: x[perm], f)
+    return rj.ObstacleSet(spheres=shuffle(obs.spheres), boxes=shuffle(obs.boxes),
+                          cylinders=shuffle(obs.cylinders))
+
+
+@pytest.mark.parametrize("spp", [7, 16, 40, 1000])
+def test_slot_layouts_compute_the_same(rng, spp):
+    """Grouping slots per scan step (7 and 16 leave padded groups, 40 and more: one step) changes
+    only the order of the sum over slots: gradients and distances equal the one-slot-per-step pass
+    and the per-point references."""
+    from redman_jax._obstacles import points_min_distance, with_slots_per_step, obstacle_distances
+
+    obs = _many_obstacles(rng)
+    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (60, 3)))
+    grouped = with_slots_per_step(obs, spp)
+    assert grouped.slots_per_step == spp and obs.slots_per_step == 1
+    g1 = np.asarray(jax.jit(lambda o: obstacle_gradients(o, X, 0.05, 0.75))(obs))
+    gs = np.asarray(jax.jit(lambda o: obstacle_gradients(o, X, 0.05, 0.75))(grouped))
+    gr = np.asarray(obstacle_gradients(obs, X, 0.05, 0.75, impl="reference"))
+    assert np.abs(gr).max() > 0
+    np.testing.assert_allclose(gs, gr, rtol=1e-10, atol=1e-12 * np.abs(gr).max())
+    np.testing.assert_allclose(gs, g1, rtol=1e-10, atol=1e-12 * np.abs(gr).max())
+    d1 = np.asarray(jax.jit(points_min_distance)(obs, X))
+    ds = np.asarray(jax.jit(points_min_distance)(grouped, X))
+    dr = np.asarray(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x)))(X))
+    np.testing.assert_allclose(ds, d1, rtol=1e-14, atol=1e-16)  # one sdf per pair: rounding only
+    np.testing.assert_allclose(ds, dr, rtol=1e-13, atol=1e-15)
+    # and under vmap over a batch of scenes, as the simulator runs it
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), grouped, with_slots_per_step(_many_obstacles(rng), spp))
+    gb = jax.jit(jax.vmap(lambda o: obstacle_gradients(o, X, 0.05, 0.75)))(both)
+    np.testing.assert_allclose(np.asarray(gb[0]), gs, rtol=1e-12, atol=1e-14 * np.abs(gr).max())
+
+
+def test_compact_obstacles_keeps_the_obstacles_and_drops_padding(rng):
+    from redman_jax._obstacles import compact_obstacles, points_min_distance, stack_obstacles
+
+    scenes = [_many_obstacles(rng, 40, 33), _many_obstacles(rng, 40, 21)]
+    batch = stack_obstacles(scenes)
+    c = compact_obstacles(batch)
+    assert c.capacities == (33, 33, 33)
+    for f in (c.spheres, c.boxes, c.cylinders):
+        np.testing.assert_array_equal(np.asarray(f.mask[0]), np.ones(33, bool))
+        np.testing.assert_array_equal(np.asarray(f.mask[1]), np.arange(33) < 21)
+    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (50, 3)))
+    for i in range(2):
+        one = jax.tree.map(lambda x: x[i], c)
+        np.testing.assert_allclose(np.asarray(points_min_distance(one, X)),
+                                   np.asarray(points_min_distance(scenes[i], X)), rtol=1e-14, atol=1e-16)
+        g, gr = (np.asarray(obstacle_gradients(o, X, 0.05, 0.75)) for o in (one, scenes[i]))
+        np.testing.assert_allclose(g, gr, rtol=1e-12, atol=1e-14 * np.abs(gr).max())
+    empty = compact_obstacles(rj.make_obstacles(capacities=(3, 2, 1)))
+    assert empty.capacities == (1, 1, 1) and not bool(empty.count())
+
+
+def test_bad_slots_per_step_raises():
+    from redman_jax._obstacles import with_slots_per_step
+    from redman_jax._sim import SimParams
+
+    obs = _mixed_obstacles()
+    with pytest.raises(ValueError, match="slots_per_step"):
+        with_slots_per_step(obs, 0)
+    with pytest.raises(ValueError, match="slots_per_step"):
+        SimParams(slots_per_step=0)

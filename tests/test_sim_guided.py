@@ -79,14 +79,38 @@ def test_one_loop_stepper_agrees_with_per_sample_solves(horizon):
     per = simulate(ARM, SCEN, CTRL, GAINS, params=SimParams(guidance_samples=150, hold_samples=20,
                                                             mode="per_sample"))
     assert bool(per.success) == bool(horizon.success)
-    assert int(per.n_samples) == int(horizon.n_samples)
-    np.testing.assert_allclose(np.asarray(horizon.q), np.asarray(per.q), rtol=0, atol=1e-4)
-    np.testing.assert_allclose(np.asarray(horizon.p), np.asarray(per.p), rtol=0, atol=2e-5)
+    n = int(per.n_samples)
+    assert n == int(horizon.n_samples)
+    # the stepper stops at the stop rule; the per-sample solves run on (the rows after n are unused)
+    np.testing.assert_allclose(np.asarray(horizon.q)[:n], np.asarray(per.q)[:n], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(horizon.p)[:n], np.asarray(per.p)[:n], rtol=0, atol=2e-5)
     assert abs(float(horizon.metrics.final_pos_err) - float(per.metrics.final_pos_err)) < 2e-5
-    np.testing.assert_array_equal(np.asarray(horizon.estimate_valid), np.asarray(per.estimate_valid))
+    np.testing.assert_array_equal(np.asarray(horizon.estimate_valid)[:n], np.asarray(per.estimate_valid)[:n])
     # the loop counts its steps like diffrax does: accepted + rejected
     assert int(horizon.n_steps) == int(horizon.n_accepted) + int(horizon.n_rejected)
-    assert int(horizon.n_accepted) >= PARAMS.guidance_samples
+    assert int(horizon.n_accepted) >= n
+
+
+def test_stopping_at_the_stop_rule_changes_nothing_reported(horizon):
+    """The stepper stops a member once the goal has been held for ``hold_samples`` sample ends.
+    Against the same run stepped on to the end of the horizon: every reported number is the same,
+    the rows after the stop hold the stop state, and the steps after it are saved."""
+    full = simulate(ARM, SCEN, CTRL, GAINS, params=SimParams(guidance_samples=150, hold_samples=20,
+                                                             stop_early=False))
+    r = horizon
+    n = int(r.n_samples)
+    assert bool(r.success) and n < PARAMS.guidance_samples  # the rule fired before 1.5 s
+    assert int(r.status) == 0 and int(full.status) == 0
+    assert int(full.n_samples) == n and bool(full.success)
+    for name in ("time_to_goal", "path_length"):
+        assert float(getattr(r, name)) == float(getattr(full, name)), name
+    for a, b in zip(jax.tree.leaves(r.metrics), jax.tree.leaves(full.metrics)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(r.q)[:n], np.asarray(full.q)[:n])
+    np.testing.assert_array_equal(np.asarray(r.estimates)[:n], np.asarray(full.estimates)[:n])
+    np.testing.assert_array_equal(np.asarray(r.q)[n:], np.broadcast_to(np.asarray(r.q)[n - 1],
+                                                                        np.asarray(r.q)[n:].shape))
+    assert int(r.n_steps) < int(full.n_steps)
 
 
 def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon):

@@ -490,9 +490,10 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
 def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e-3) -> tuple:
     """``sum_o grad V_o`` at the points ``X = (x, y, z)`` (three ``(m,)`` planes), as three planes.
 
-    One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators, one
-    :func:`_slot_gradient` per step."""
+    One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators,
+    ``obs.slots_per_step`` slots per step (:class:`~redman_jax._obstacles.ObstacleSet`)."""
     from ._fields import _check_form
+    from ._obstacles import slot_steps
 
     _check_form(form)
     g = tuple(jnp.zeros_like(X[0]) for _ in range(3))
@@ -501,11 +502,17 @@ def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e
         if fam.capacity == 0:
             continue
 
-        def body(acc, slot, kind=kind):
-            c = _slot_gradient(kind, *slot, X, a, D, form, clamp)
-            return tuple(x + y for x, y in zip(acc, c)), None
+        slots, c = slot_steps(fam, obs.slots_per_step)
 
-        g, _ = jax.lax.scan(body, g, (fam.R, fam.p, fam.dims, fam.mask))
+        def body(acc, slot, kind=kind, c=c):
+            if c == 1:
+                gs = _slot_gradient(kind, *slot, X, a, D, form, clamp)
+            else:  # c slots at once, (c, m) planes summed over the slots
+                gs = jax.vmap(lambda *sl: _slot_gradient(kind, *sl, X, a, D, form, clamp))(*slot)
+                gs = tuple(jnp.sum(x, axis=0) for x in gs)
+            return tuple(x + y for x, y in zip(acc, gs)), None
+
+        g, _ = jax.lax.scan(body, g, slots)
     return g
 
 

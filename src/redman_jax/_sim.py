@@ -108,7 +108,12 @@ class SimParams(eqx.Module):
       ``guidance_samples``: horizon of gradient-guided runs (600 = 6 s); ``hold_samples``: the
       hold before a gradient-guided run stops (100 = 1 s); ``buffer_size``: virtual obstacles (20);
       ``even_steps``: split the rest of each sample into equal steps (horizon mode, see
-      ``_EvenSplit``).
+      ``_EvenSplit``); ``slots_per_step``: obstacle slots per step of the per-point passes
+      (:class:`~redman_jax.ObstacleSet`; None: :func:`~redman_jax._obstacles.auto_slots_per_step`
+      of the batch size and the points of interest: 37 box slots per step for 20 9-DOF states,
+      one at a time at 256 and more; the same results to rounding, the warehouse closed loop 1.8x
+      cheaper at batch 20); ``stop_early``: a gradient-guided member stops stepping at the stop
+      rule (horizon mode; the results are the same, see :func:`_solve_guided_stepper`).
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
 
@@ -132,8 +137,14 @@ class SimParams(eqx.Module):
     hold_samples: int = eqx.field(static=True, default=100)
     buffer_size: int = eqx.field(static=True, default=20)
     even_steps: bool = eqx.field(static=True, default=True)
+    slots_per_step: int | None = eqx.field(static=True, default=None)
+    stop_early: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
+        if self.slots_per_step is not None and (not isinstance(self.slots_per_step, int)
+                                                or self.slots_per_step < 1):
+            raise ValueError(f"SimParams.slots_per_step: expected None (auto) or a positive int, "
+                             f"got {self.slots_per_step!r}")
         if self.solver not in _SOLVERS:
             raise ValueError(f"SimParams.solver: expected one of {sorted(_SOLVERS)}, got {self.solver!r}")
         if self.mode not in ("horizon", "per_sample"):
@@ -515,6 +526,11 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
     previous sample's mean step instead), so the steps differ from ``mode="per_sample"`` only at
     the tolerance level.
 
+    A member stops at the stop rule (the goal error below ``goal_radius`` at ``hold_samples``
+    consecutive sample ends, :func:`~redman_jax._metrics.guidance_termination`): what comes after
+    the stop is never reported, and a run that reaches the goal no longer steps on to 6 s (under
+    ``vmap`` the loop runs for its slowest member).
+
     Why: under ``vmap`` a scan of per-sample solves costs ``sum_k max_members(steps in sample
     k)`` loop iterations; this loop costs ``max_members(total steps)`` (9-DOF simple case, 20
     seeds: 18514 against 4590, ``benchmarks/bench_guided.py``). Forward only: differentiate gradient-guided runs
@@ -554,11 +570,12 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
         ys=jax.tree.map(zeros_like_rows, y0),
         est=jnp.zeros((N, 3), dtype).at[0].set(x_min), est_ok=jnp.zeros((N,), bool).at[0].set(valid),
         rots=jnp.zeros((N,), dtype).at[0].set(rot),
-        steps=jnp.zeros((3,), jnp.int32))
+        steps=jnp.zeros((3,), jnp.int32), hold=jnp.zeros((), jnp.int32))
     max_steps = params.max_steps_per_sample * N
 
     def cond(c):
-        return (c["k"] < N) & (c["steps"][0] < max_steps)
+        go = (c["k"] < N) & (c["steps"][0] < max_steps)
+        return go & (c["hold"] < params.hold_samples) if params.stop_early else go
 
     def body(c):
         k, t, y = c["k"], c["t"], c["y"]
@@ -592,16 +609,23 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
         rots = c["rots"].at[row1].set(rot, mode="drop")
         made_jump = jnp.where(keep, at_end, c["made_jump"])
         steps = c["steps"] + jnp.stack([1, keep.astype(jnp.int32), (~keep).astype(jnp.int32)])
+        # the stop rule (guidance_termination): consecutive sample ends within the goal radius
+        p_end = kinematics(arm, y.q).ee[None, :3, 3]
+        inside = position_errors(p_end, scenario.goal_p[None])[0] < params.goal_radius
+        hold = jnp.where(at_end, jnp.where(inside, c["hold"] + 1, 0), c["hold"])
         return dict(k=k + at_end.astype(jnp.int32), t=t, tnext=tnext, y=y, sstate=sstate,
                     cstate=cstate, made_jump=made_jump, buf=buf, rot=rot, ys=ys, est=est,
-                    est_ok=est_ok, rots=rots, steps=steps)
+                    est_ok=est_ok, rots=rots, steps=steps, hold=hold)
 
     c = jax.lax.while_loop(cond, body, carry0)
-    # out of steps: the rows not reached hold the last state (the run is flagged through status)
+    # Stopped by the rule, or out of steps: the rows not reached hold the last state. After the
+    # rule's stop that is the state at the stop, inside the radius, so the post-hoc rule of
+    # _simulate_guided finds the same stop; out of steps is flagged through status.
     reached = jnp.arange(N) < c["k"]
     ys = jax.tree.map(lambda rows, v: jnp.where(reached.reshape((N,) + (1,) * v.ndim), rows, v),
                       c["ys"], c["y"])
-    status = jnp.where(c["k"] < N, diffrax.RESULTS.max_steps_reached._value, 0)
+    stopped = (c["hold"] >= params.hold_samples) & params.stop_early
+    status = jnp.where((c["k"] < N) & ~stopped, diffrax.RESULTS.max_steps_reached._value, 0)
     return ys, c["steps"], status, c["est"], c["est_ok"], c["rots"], c["buf"]
 
 
@@ -675,8 +699,9 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
     estimator pushes an estimate into the virtual-obstacle buffer and the orientation latch switches
     on within ``guidance_rot_radius`` of the goal. ``mode="horizon"``: one adaptive integration
     with the discrete updates between steps (:func:`_solve_guided_stepper`, forward only);
-    ``mode="per_sample"``: a scan of per-sample solves (differentiable). Runs the full 6 s horizon
-    and applies the stop rule afterwards (exact, as stopping does not change the past)."""
+    ``mode="per_sample"``: a scan of per-sample solves (differentiable), which runs the full 6 s
+    horizon. The stop rule is applied afterwards in both modes (exact, as stopping does not change
+    the past); the horizon stepper also stops each member there, which saves its steps."""
     from ._guidance import VirtualBuffer, field_params_or_default
 
     dtype = scenario.goal_p.dtype
@@ -760,6 +785,17 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
                          f"{scenario.reference.p.shape}")
 
 
+def _with_layout(arm: Arm, scenario: Scenario, params: SimParams, batch: int) -> Scenario:
+    """``scenario`` with its obstacles' work layout set from ``params.slots_per_step`` (None: from
+    the batch size and the arm's points of interest)."""
+    from ._obstacles import auto_slots_per_step, with_slots_per_step
+
+    s = params.slots_per_step
+    if s is None:
+        s = auto_slots_per_step(batch, arm.n_dof * arm.points_per_link)
+    return eqx.tree_at(lambda sc: sc.obstacles, scenario, with_slots_per_step(scenario.obstacles, s))
+
+
 def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains, ik=None,
              params: SimParams | None = None, *, q0=None, qd0=None) -> SimResult:
     """Simulate one closed-loop run (jit-compiled; see the module docstring).
@@ -778,6 +814,7 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     params = SimParams() if params is None else params
     _check_inputs(arm, scenario, controller, ik, batched=False)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    scenario = _with_layout(arm, scenario, params, 1)
     return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
 
 
@@ -807,6 +844,7 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     if q0 is not None and qd0 is None:
         qd0 = jnp.zeros_like(jnp.asarray(q0))
+    scenarios = _with_layout(arm, scenarios, params, scenarios.reference.p.shape[0])
     return _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params,
                                0 if batch_gains else None, None if q0 is None else 0)
 
@@ -846,4 +884,5 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
     if controller.uses_guidance:
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    scenario = _with_layout(arm, scenario, params, 1)
     return _simulate_dense_jit(arm, scenario, controller, gains, jref, q0, qd0, params, points_per_sample)
