@@ -503,3 +503,32 @@ def test_bad_slots_per_step_raises():
         with_slots_per_step(obs, 0)
     with pytest.raises(ValueError, match="slots_per_step"):
         SimParams(slots_per_step=0)
+
+
+@pytest.mark.parametrize("spp", [1, 16])
+def test_used_bound_skips_only_padding(rng, spp):
+    """With ``ObstacleSet.used`` the passes skip the slot groups past the bound: the same results
+    with the computed bound (active slots interleaved with padding), different ones with a bound
+    that cuts active slots (so the skip is real), and under ``vmap`` with an unbatched bound the
+    skip stays a branch (``cond``), not a select."""
+    from redman_jax._obstacles import (points_min_distance, used_bound, with_slots_per_step,
+                                       with_used)
+
+    obs = with_slots_per_step(rj.pad_obstacles(_many_obstacles(rng, 40, 30), (64, 64, 64)), spp)
+    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (40, 3)))
+    used = used_bound(obs)
+    assert 30 <= int(used.min()) and int(used.max()) <= 40
+    f = jax.jit(lambda o: (obstacle_gradients(o, X, 0.05, 0.75), points_min_distance(o, X)))
+    g0, d0 = f(obs)
+    g1, d1 = f(with_used(obs, used))
+    np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-14, atol=1e-14 * float(jnp.abs(g0).max()))
+    np.testing.assert_array_equal(np.asarray(d1), np.asarray(d0))
+    g2, d2 = f(with_used(obs, jnp.asarray([4, 4, 4], jnp.int32)))
+    assert np.abs(np.asarray(g2) - np.asarray(g0)).max() > 1e-6 * float(jnp.abs(g0).max())
+    assert np.any(np.asarray(d2) > np.asarray(d0))
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), obs, obs)
+    batched = lambda o, u: jax.vmap(lambda oo: obstacle_gradients(with_used(oo, u), X, 0.05, 0.75))(o)
+    jaxpr = str(jax.make_jaxpr(batched)(both, used))
+    assert " cond[" in jaxpr
+    np.testing.assert_allclose(np.asarray(jax.jit(batched)(both, used)[1]), np.asarray(g0), rtol=1e-14,
+                               atol=1e-14 * float(jnp.abs(g0).max()))

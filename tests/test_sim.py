@@ -206,6 +206,48 @@ def test_obstacle_slot_layouts_give_the_same_run():
     np.testing.assert_allclose(np.asarray(auto.f_obs), np.asarray(one.f_obs), rtol=1e-12, atol=1e-12)
 
 
+def test_cases_padded_to_common_shapes_share_one_compilation():
+    """Two "cases" with different reference and obstacle capacities, padded to common shapes
+    (``_pipeline.pad_case``, what the study does): the second one reuses the first one's compiled
+    simulation, and both give the runs of their unpadded versions (valid samples)."""
+    from jax import monitoring
+
+    from redman_jax._pipeline import pad_case
+
+    a, ja = joint_motion_scenario(ARM, DQ_FREE, 0.3, 40)
+    mid = np.asarray(a.reference.p[15])
+    b, jb = joint_motion_scenario(ARM, np.asarray(DQ_FREE) * 0.7, 0.4, CAP, spheres=[(mid, 0.05)])
+    b = eqx.tree_at(lambda s: s.obstacles, b, rj_pad(b.obstacles, (3, 2, 1)))
+    batch = lambda sc, j: (stack_scenarios([sc, sc]), tuple(jnp.stack([x, x]) for x in j))
+    shapes = (CAP, (3, 2, 1))
+    compiles = []
+    monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiles.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
+    g = toy_gains("osc")
+    results = []
+    for sc, j in ((a, ja), (b, jb)):
+        scp, jp = pad_case(*batch(sc, j), shapes)
+        assert scp.reference.capacity == CAP and scp.obstacles.capacities == (3, 2, 1)
+        n0 = len(compiles)
+        padded = simulate_batch(ARM, scp, CTRL, g, ik=jp)
+        jax.block_until_ready(padded.q)
+        results.append((len(compiles) - n0, padded, simulate_batch(ARM, *batch(sc, j)[:1], CTRL, g, ik=batch(sc, j)[1])))
+    assert results[1][0] == 0  # no new compilation for the second case
+    for _, padded, plain in results:
+        n = int(plain.n_samples[0])
+        np.testing.assert_allclose(np.asarray(padded.q)[:, :n], np.asarray(plain.q)[:, :n], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(padded.metrics.mean_pos_err), np.asarray(plain.metrics.mean_pos_err),
+                                   rtol=1e-10)
+        assert np.array_equal(np.asarray(padded.metrics.collided), np.asarray(plain.metrics.collided))
+    assert bool(results[1][1].metrics.collided[0])
+
+
+def rj_pad(obs, caps):
+    from redman_jax._obstacles import pad_obstacles
+
+    return pad_obstacles(obs, caps)
+
+
 def test_joint_limit_flag_fires_past_a_limit():
     """Drive the lift (Pz, limits [0, 1.2]) to -0.05 m: the contact (3.6) stops it near 0 and the
     joint-limit flag integrates the time spent outside; an obstacle-free run stays a success."""

@@ -224,9 +224,10 @@ def test_gain_overrides_from_a_tuned_gains_file(tmp_path):
     assert cfg.gains["acceleration"]["kp"] == 444.5
 
 
-def test_compiled_programs_are_dropped_after_each_unit(monkeypatch, tmp_path):
-    """Every unit compiles its own programs; a worker that kept them all ran out of memory mappings
-    (vm.max_map_count) part-way through the full study. _run_group drops them after each unit."""
+def test_compiled_programs_are_dropped_after_each_group(monkeypatch, tmp_path):
+    """A worker that kept every compiled program ran out of memory mappings (vm.max_map_count)
+    part-way through the full study. _run_group drops them after each group: each scenario build,
+    and each (arm, controller) group of simulations, whose cases share one compilation."""
     import jax
 
     calls, cleared = [], []
@@ -234,8 +235,10 @@ def test_compiled_programs_are_dropped_after_each_unit(monkeypatch, tmp_path):
     real_clear = jax.clear_caches
     monkeypatch.setattr(jax, "clear_caches", lambda: (cleared.append(len(calls)), real_clear()))
     run_sweep(_config(tmp_path))
-    # after each of the 5 units (2 scenario builds, 3 runs), right after the unit's own work
-    assert cleared == [1, 2, 3, 4, 5]
+    # builds: welding, simple; then the groups (9, velocity): welding, simple and (9, gradient): simple
+    assert [c for c in calls] == [("scen", "welding"), ("scen", "simple"), ("run", "welding", "velocity"),
+                                  ("run", "simple", "velocity"), ("run", "simple", "gradient")]
+    assert cleared == [1, 2, 4, 5]
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")

@@ -491,28 +491,26 @@ def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e
     """``sum_o grad V_o`` at the points ``X = (x, y, z)`` (three ``(m,)`` planes), as three planes.
 
     One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators,
-    ``obs.slots_per_step`` slots per step (:class:`~redman_jax._obstacles.ObstacleSet`)."""
+    ``obs.slots_per_step`` slots per step, steps past ``obs.used`` skipped
+    (:class:`~redman_jax._obstacles.ObstacleSet`, :func:`~redman_jax._obstacles.fold_slots`)."""
     from ._fields import _check_form
-    from ._obstacles import slot_steps
+    from ._obstacles import fold_slots
 
     _check_form(form)
     g = tuple(jnp.zeros_like(X[0]) for _ in range(3))
-    for kind in ("spheres", "boxes", "cylinders"):
-        fam = getattr(obs, kind)
-        if fam.capacity == 0:
+    for i, kind in enumerate(("spheres", "boxes", "cylinders")):
+        if getattr(obs, kind).capacity == 0:
             continue
 
-        slots, c = slot_steps(fam, obs.slots_per_step)
-
-        def body(acc, slot, kind=kind, c=c):
+        def step(acc, slot, c, kind=kind):
             if c == 1:
                 gs = _slot_gradient(kind, *slot, X, a, D, form, clamp)
             else:  # c slots at once, (c, m) planes summed over the slots
                 gs = jax.vmap(lambda *sl: _slot_gradient(kind, *sl, X, a, D, form, clamp))(*slot)
                 gs = tuple(jnp.sum(x, axis=0) for x in gs)
-            return tuple(x + y for x, y in zip(acc, gs)), None
+            return tuple(x + y for x, y in zip(acc, gs))
 
-        g, _ = jax.lax.scan(body, g, slots)
+        g = fold_slots(obs, i, g, step)
     return g
 
 

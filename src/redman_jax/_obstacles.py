@@ -19,7 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._math import safe_norm
 
@@ -38,6 +38,8 @@ __all__ = [
     "points_min_distance",
     "with_slots_per_step",
     "compact_obstacles",
+    "used_bound",
+    "with_used",
     "auto_slots_per_step",
     "BIG_DISTANCE",
 ]
@@ -71,12 +73,19 @@ class ObstacleSet(eqx.Module):
     batches every step is mostly loop overhead, and more slots per step are several times faster
     (:func:`auto_slots_per_step`, which :func:`~redman_jax.simulate_batch` applies). Results agree
     to rounding (the order of the sum over slots changes).
+
+    ``used`` (optional, ``(3,)`` integers): per family, a bound on the slots in use: every slot at
+    or past ``used[f]`` is masked. The passes then skip whole steps past it with a ``lax.cond``,
+    a real branch when ``used`` is not batched (the simulator computes it over the batch,
+    :func:`used_bound`), so scenes padded to a common capacity (one compilation for several cases)
+    pay little for the padding. None (default): every step is evaluated.
     """
 
     spheres: Shapes
     boxes: Shapes
     cylinders: Shapes
     slots_per_step: int = eqx.field(static=True, default=1)
+    used: Int[Array, "3"] | None = None
 
     def __check_init__(self):
         if not isinstance(self.slots_per_step, int) or self.slots_per_step < 1:
@@ -140,26 +149,29 @@ def empty_obstacles(capacities=(1, 1, 1)) -> ObstacleSet:
 
 
 def _pad_family(s: Shapes, capacity: int) -> Shapes:
+    """Masked slots appended up to ``capacity`` (leading batch axes allowed)."""
     k = s.capacity
     if capacity < k:
         raise ValueError(f"pad_obstacles: capacity {capacity} < current {k}")
     extra = capacity - k
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=s.R.dtype), (extra, 3, 3))
+    lead = s.mask.shape[:-1]
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=s.R.dtype), lead + (extra, 3, 3))
     return Shapes(
-        R=jnp.concatenate([s.R, eye]),
-        p=jnp.concatenate([s.p, jnp.zeros((extra, 3), s.p.dtype)]),
-        dims=jnp.concatenate([s.dims, jnp.full((extra, 3), 1e-3, s.dims.dtype)]),
-        mask=jnp.concatenate([s.mask, jnp.zeros((extra,), bool)]),
+        R=jnp.concatenate([s.R, eye], axis=-3),
+        p=jnp.concatenate([s.p, jnp.zeros(lead + (extra, 3), s.p.dtype)], axis=-2),
+        dims=jnp.concatenate([s.dims, jnp.full(lead + (extra, 3), 1e-3, s.dims.dtype)], axis=-2),
+        mask=jnp.concatenate([s.mask, jnp.zeros(lead + (extra,), bool)], axis=-1),
     )
 
 
 def pad_obstacles(obs: ObstacleSet, capacities: tuple[int, int, int]) -> ObstacleSet:
-    """Pad every family of ``obs`` to the given capacities (spheres, boxes, cylinders)."""
+    """Pad every family of ``obs`` to the given capacities (spheres, boxes, cylinders); ``obs`` may
+    carry leading batch axes."""
     return ObstacleSet(
         spheres=_pad_family(obs.spheres, capacities[0]),
         boxes=_pad_family(obs.boxes, capacities[1]),
         cylinders=_pad_family(obs.cylinders, capacities[2]),
-        slots_per_step=obs.slots_per_step,
+        slots_per_step=obs.slots_per_step, used=obs.used,
     )
 
 
@@ -186,7 +198,44 @@ def compact_obstacles(obs: ObstacleSet) -> ObstacleSet:
 def with_slots_per_step(obs: ObstacleSet, slots_per_step: int) -> ObstacleSet:
     """``obs`` with another work layout (:class:`ObstacleSet`); the same obstacles."""
     return ObstacleSet(spheres=obs.spheres, boxes=obs.boxes, cylinders=obs.cylinders,
-                       slots_per_step=int(slots_per_step))
+                       slots_per_step=int(slots_per_step), used=obs.used)
+
+
+def used_bound(obs: ObstacleSet) -> Int[Array, "3"]:
+    """Per family, one past the last active slot over all leading (batch) axes: a valid
+    :attr:`ObstacleSet.used` for every member (0 for a family with no active slot)."""
+    def last(f: Shapes):
+        K = f.capacity
+        idx = jnp.where(f.mask, jnp.arange(1, K + 1, dtype=jnp.int32), 0)
+        return jnp.max(idx) if idx.size else jnp.zeros((), jnp.int32)
+
+    return jnp.stack([last(obs.spheres), last(obs.boxes), last(obs.cylinders)])
+
+
+def with_used(obs: ObstacleSet, used) -> ObstacleSet:
+    """``obs`` with :attr:`ObstacleSet.used` set (None: evaluate every step)."""
+    return ObstacleSet(spheres=obs.spheres, boxes=obs.boxes, cylinders=obs.cylinders,
+                       slots_per_step=obs.slots_per_step, used=used)
+
+
+def fold_slots(obs: ObstacleSet, family: int, init, step):
+    """``acc = step(acc, slots, c)`` over the slot groups of family ``family`` (0 spheres,
+    1 boxes, 2 cylinders; :func:`slot_steps`), one ``lax.scan`` per segment; with ``obs.used``
+    set, the groups that start at or past it are skipped by a ``lax.cond`` (differentiable)."""
+    fam = (obs.spheres, obs.boxes, obs.cylinders)[family]
+    acc = init
+    for start, slots, c in slot_steps(fam, obs.slots_per_step):
+        if obs.used is None:
+            acc, _ = jax.lax.scan(lambda a, sl, c=c: (step(a, sl, c), None), acc, slots)
+            continue
+        limit = obs.used[family]
+
+        def body(a, x, c=c, start=start):
+            j, sl = x
+            return jax.lax.cond(start + j * c < limit, lambda a_: step(a_, sl, c), lambda a_: a_, a), None
+
+        acc, _ = jax.lax.scan(body, acc, (jnp.arange(slots[0].shape[0], dtype=jnp.int32), slots))
+    return acc
 
 
 # Elements (batch x points x slots) one step of a slot scan should cover. Measured on a 2-core x86
@@ -197,6 +246,8 @@ def with_slots_per_step(obs: ObstacleSet, slots_per_step: int) -> ObstacleSet:
 # slots the loop overhead is small and one slot per step stays best (``_MIN_GROUPED_SLOTS``).
 _STEP_ELEMENTS = 1 << 15
 _MIN_GROUPED_SLOTS = 32
+_HEAD_GROUP = 8
+_HEAD_SLOTS = 16
 
 
 def auto_slots_per_step(batch: int, n_points: int) -> int:
@@ -206,19 +257,38 @@ def auto_slots_per_step(batch: int, n_points: int) -> int:
     return 1 if s < 8 else int(s)
 
 
-def slot_steps(fam: Shapes, slots_per_step: int):
-    """``fam``'s slots grouped for a scan: ``((R, p, dims, mask), c)`` with each array shaped
-    ``(steps, c, ...)`` (``c = 1``: the plain ``(K, ...)`` arrays, one slot per step). The
-    ``ceil(K / slots_per_step)`` steps share the slots evenly; the few padded slots are masked.
-    Families of fewer than 32 slots keep one slot per step (see ``_STEP_ELEMENTS``)."""
+def _grouped(fam: Shapes, start: int, stop: int, c: int):
+    """Slots ``start:stop`` in groups of ``c`` (the last group padded with masked slots)."""
+    f = Shapes(R=fam.R[start:stop], p=fam.p[start:stop], dims=fam.dims[start:stop], mask=fam.mask[start:stop])
+    steps = -(-(stop - start) // c)
+    f = _pad_family(f, steps * c)
+    shape = lambda x: x.reshape((steps, c) + x.shape[1:])
+    return (shape(f.R), shape(f.p), shape(f.dims), shape(f.mask))
+
+
+def slot_steps(fam: Shapes, slots_per_step: int) -> list:
+    """``fam``'s slots laid out for the passes: a list of segments ``(start, slots, c)``, each one
+    ``lax.scan`` over groups of ``c`` slots from slot ``start`` on (``slots``: ``(R, p, dims, mask)``
+    shaped ``(steps, c, ...)``; ``c = 1``: the plain ``(K, ...)`` arrays).
+
+    * fewer than 32 slots, or ``slots_per_step = 1``: one slot per step;
+    * otherwise a head of ``_HEAD_SLOTS`` slots in groups of ``_HEAD_GROUP`` (a scene using few of
+      many padded slots, e.g. a case padded to another case's capacity, computes only those), then
+      the rest in ``ceil(rest / slots_per_step)`` even groups (the last padded with masked slots).
+    """
     K = fam.capacity
     if slots_per_step <= 1 or K < _MIN_GROUPED_SLOTS:
-        return (fam.R, fam.p, fam.dims, fam.mask), 1
-    steps = -(-K // slots_per_step)
-    c = -(-K // steps)
-    f = _pad_family(fam, steps * c)
-    shape = lambda x: x.reshape((steps, c) + x.shape[1:])
-    return (shape(f.R), shape(f.p), shape(f.dims), shape(f.mask)), c
+        return [(0, (fam.R, fam.p, fam.dims, fam.mask), 1)]
+    segs, start = [], 0
+    if slots_per_step > _HEAD_GROUP:
+        start = min(_HEAD_SLOTS, K)
+        segs.append((0, _grouped(fam, 0, start, _HEAD_GROUP), _HEAD_GROUP))
+    rest = K - start
+    if rest > 0:
+        steps = -(-rest // slots_per_step)
+        c = -(-rest // steps)
+        segs.append((start, _grouped(fam, start, K, c), c))
+    return segs
 
 
 def stack_obstacles(sets) -> ObstacleSet:
@@ -299,20 +369,17 @@ def points_min_distance(obs: ObstacleSet, points: Float[Array, "m 3"]) -> Float[
     points = jnp.asarray(points)
     X = tuple(points[:, j] for j in range(3))
     best = jnp.full(points.shape[:1], BIG_DISTANCE, points.dtype)
-    for kind in ("spheres", "boxes", "cylinders"):
-        fam = getattr(obs, kind)
-        if fam.capacity == 0:
+    for i, kind in enumerate(("spheres", "boxes", "cylinders")):
+        if getattr(obs, kind).capacity == 0:
             continue
 
-        slots, c = slot_steps(fam, obs.slots_per_step)
-
-        def body(acc, slot, kind=kind, c=c):
+        def step(acc, slot, c, kind=kind):
             R, p, dims, mask = slot
             if c == 1:
                 d = _slot_sdf(kind, R, p, dims, X)
-                return jnp.where(mask, jnp.minimum(acc, d), acc), None
+                return jnp.where(mask, jnp.minimum(acc, d), acc)
             d = jax.vmap(lambda R_, p_, d_: _slot_sdf(kind, R_, p_, d_, X))(R, p, dims)  # (c, m)
-            return jnp.minimum(acc, jnp.min(jnp.where(mask[:, None], d, BIG_DISTANCE), axis=0)), None
+            return jnp.minimum(acc, jnp.min(jnp.where(mask[:, None], d, BIG_DISTANCE), axis=0))
 
-        best, _ = jax.lax.scan(body, best, slots)
+        best = fold_slots(obs, i, best, step)
     return best

@@ -22,7 +22,7 @@ import numpy as np
 
 from ._obstacles import compact_obstacles
 
-__all__ = ["build_case", "run_controller", "make_gains", "shard_batch"]
+__all__ = ["build_case", "run_controller", "make_gains", "shard_batch", "study_shapes", "pad_case"]
 
 
 def _block(tree):
@@ -131,6 +131,7 @@ def make_gains(controller, overrides: dict | None):
 def _sample_inputs(arm, scen, controller, gains):
     """A representative (state, reference, environment) for timing one control-law evaluation."""
     from ._control_types import ControlState, RefSample, make_environment
+    from ._obstacles import used_bound, with_used
 
     s = _take(scen, 0)
     ref = s.reference
@@ -140,13 +141,80 @@ def _sample_inputs(arm, scen, controller, gains):
     state = ControlState(t=jnp.asarray(0.0), q=q, qd=jnp.zeros(n), z=controller.init_state(arm, q, jnp.zeros(n)))
     rs = RefSample(p=ref.p[k], v=ref.v[k], a=ref.a[k], quat=ref.quat[k], omega=ref.omega[k],
                    omega_dot=ref.omega_dot[k], rot=ref.rot[k], q=q, qd=jnp.zeros(n), qdd=jnp.zeros(n))
-    env = make_environment(s.obstacles, s.goal_p, s.goal_quat)
+    # the bound on the used slots, as the simulator sets it (the padded slots of pad_case skipped)
+    env = make_environment(with_used(s.obstacles, used_bound(s.obstacles)), s.goal_p, s.goal_quat)
     return state, rs, env
 
 
+def study_shapes(cases, ts: float = 0.01) -> dict:
+    """``{case: (N, (spheres, boxes, cylinders))}``: the shapes each case is simulated at, from
+    the generators' fixed capacities. Cases whose obstacle families all hold fewer than 32 slots
+    share one shape, the largest reference and obstacle capacities among them, so that one
+    compilation per arm and controller serves all of them (:func:`run_controller`); a case with a
+    larger family (warehouse: 146 box slots) keeps its own, since padding the others to it would
+    cost them run time (measured: 9-DOF inspection, velocity OSC, 2.5 s against 4.0 s)."""
+    from ._cases import CaseParams, obstacle_capacities
+
+    P = CaseParams(ts=ts)
+    own = {c: (int(P.case(c).capacity), tuple(obstacle_capacities(c, P))) for c in cases}
+    small = [c for c in cases if max(own[c][1]) < _SHARED_MAX_SLOTS]
+    if small:
+        N = max(own[c][0] for c in small)
+        caps = tuple(max(own[c][1][i] for c in small) for i in range(3))
+        own.update({c: (N, caps) for c in small})
+    return own
+
+
+_SHARED_MAX_SLOTS = 32
+
+
+def _pad_rows(x, N: int, fill=None):
+    """Pad axis 1 (samples) of a batched array to ``N`` rows: ``fill``, or the last row repeated."""
+    x = jnp.asarray(x)
+    extra = N - x.shape[1]
+    if extra <= 0:
+        return x
+    if fill is None:
+        tail = jnp.repeat(x[:, -1:], extra, axis=1)
+    else:
+        tail = jnp.full((x.shape[0], extra) + x.shape[2:], fill, x.dtype)
+    return jnp.concatenate([x, tail], axis=1)
+
+
+def pad_case(scen, ik, shapes):
+    """Scenarios (batched) and IK results (an ``IKResult`` or ``(q, qd, qdd)``) padded to ``shapes = (N, caps)``: reference and joint
+    reference rows past the capacity are invalid samples (``mask`` False, the last row repeated;
+    the simulator freezes the loop there), obstacle slots are masked. The scene's static case name
+    becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation."""
+    from ._obstacles import pad_obstacles
+    from ._scenario import Reference, Scenario
+
+    N, caps = shapes
+    ref = scen.reference
+    N = max(int(N), ref.capacity)
+    caps = tuple(max(a, b) for a, b in zip(caps, scen.obstacles.capacities))
+    ref = Reference(p=_pad_rows(ref.p, N), v=_pad_rows(ref.v, N), a=_pad_rows(ref.a, N),
+                    quat=_pad_rows(ref.quat, N), omega=_pad_rows(ref.omega, N),
+                    omega_dot=_pad_rows(ref.omega_dot, N), rot=_pad_rows(ref.rot, N),
+                    mask=_pad_rows(ref.mask, N, False), n_samples=ref.n_samples, ts=ref.ts)
+    scen = Scenario(obstacles=pad_obstacles(scen.obstacles, caps), goal_p=scen.goal_p,
+                    goal_quat=scen.goal_quat, reference=ref, seed=scen.seed, seed_used=scen.seed_used,
+                    valid=scen.valid, case="custom")
+    q, qd, qdd = (jnp.asarray(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
+    ik = (_pad_rows(q, N), _pad_rows(qd, N + qd.shape[1] - q.shape[1]),
+          _pad_rows(qdd, N + qdd.shape[1] - q.shape[1]))
+    return scen, ik
+
+
 def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict | None = None,
-                   *, sim_params=None, n_timing_calls: int = 300) -> dict:
-    """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table."""
+                   *, sim_params=None, n_timing_calls: int = 300, shapes=None) -> dict:
+    """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table.
+
+    ``shapes``: ``(N, caps)``, this case's entry of :func:`study_shapes`; the case is simulated
+    padded to it (:func:`pad_case`), so one compilation serves the cases of an arm and controller
+    that share it (in one process).
+    The rows and traces are the same as without (to rounding: the padded obstacle slots change the
+    grouping of the sum over slots)."""
     from ._controllers import CONTROLLERS
     from ._metrics import controller_time_per_sample
     from ._sim import SimParams, simulate_batch
@@ -157,17 +225,31 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     # active obstacle slots first, capacity cut to the largest count (warehouse: 146 -> <= 97 boxes)
     scen = eqx.tree_at(lambda s: s.obstacles, scen, compact_obstacles(scen.obstacles))
     ik = jax.tree.map(jnp.asarray, scen_payload["ik"])
+    N0 = scen.reference.capacity
+    if shapes is not None and (controller.uses_guidance
+                               or tuple(shapes[1]) == scen_payload["scenarios"].obstacles.capacities):
+        # Obstacles stay compacted where the case keeps its own shapes, and for the guided runs:
+        # their guidance field and estimator evaluate every slot at the end-effector, so padded
+        # slots would cost run time (9-DOF simple: 19 s against 9.5 s), more than a compilation.
+        shapes = (shapes[0], scen.obstacles.capacities)
+    if shapes is not None:
+        scen_sim, ik_sim = pad_case(scen, ik, shapes)
+    else:
+        scen_sim, ik_sim = scen, (ik.q, ik.qd, ik.qdd)
     params = SimParams() if sim_params is None else sim_params
     ndev = len(jax.devices())
-    scen_p, R = _pad_batch(scen, ndev)
-    ik_p, _ = _pad_batch(ik, ndev)
+    scen_p, R = _pad_batch(scen_sim, ndev)
+    ik_p, _ = _pad_batch(ik_sim, ndev)
     scen_p, ik_p = shard_batch(scen_p), shard_batch(ik_p)
     ik_arg = ik_p if controller.needs_joint_reference else None
     t0 = time.perf_counter()
     res = _block(simulate_batch(arm, scen_p, controller, gains, ik=ik_arg, params=params))
     t_sim = time.perf_counter() - t0
     res = jax.tree.map(lambda x: np.asarray(x)[:R], res)
-    state, rs, env = _sample_inputs(arm, scen, controller, gains)
+    if not controller.uses_guidance:  # the padded samples back off (invalid, never reported)
+        N1 = scen_sim.reference.capacity
+        res = jax.tree.map(lambda x: x[:, :N0] if x.ndim >= 2 and x.shape[1] == N1 else x, res)
+    state, rs, env = _sample_inputs(arm, scen_sim, controller, gains)
     t_ctrl = controller_time_per_sample(controller, gains, arm, state, rs, env, n_calls=n_timing_calls)
     t_lme = float("nan")
     field_shift = np.full(R, np.nan)

@@ -77,7 +77,7 @@ from ._metrics import (
     position_errors,
     run_metrics,
 )
-from ._obstacles import points_min_distance
+from ._obstacles import points_min_distance, used_bound, with_used
 from ._robot import Arm
 from ._scenario import Reference, Scenario
 
@@ -760,6 +760,9 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
 
 
 def _simulate_core(arm, scenario, controller, gains, jref, q0, qd0, params) -> SimResult:
+    if scenario.obstacles.used is None:  # a single run (the batch sets it over all members)
+        scenario = eqx.tree_at(lambda s: s.obstacles, scenario,
+                               with_used(scenario.obstacles, used_bound(scenario.obstacles)))
     if controller.uses_guidance:
         return _simulate_guided(arm, scenario, controller, gains, q0, qd0, params)
     return _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params)
@@ -820,7 +823,12 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
 
 @eqx.filter_jit
 def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params, gains_axis, q0_axis):
+    # one bound on the used obstacle slots for the whole batch: unbatched, so the slot passes skip
+    # the padded steps with a real branch (per member it would be a select, which skips nothing)
+    used = used_bound(scenarios.obstacles)
+
     def one(s, g, j, q, qd):
+        s = eqx.tree_at(lambda sc: sc.obstacles, s, with_used(s.obstacles, used))
         return _simulate_core(arm, s, controller, g, j, q, qd, params)
 
     in_axes = (0, gains_axis, None if jref is None else 0, q0_axis, q0_axis)

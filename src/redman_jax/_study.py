@@ -5,13 +5,16 @@ Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
 1. generate the scenarios of all requested seeds and plan their trajectories (timed);
 2. run the IK on all of them at once and keep, per seed, the first valid one among
    ``seed, seed + 1000, ...`` (timed);
-3. simulate every applicable controller on all seeds at once (one ``jit(vmap)`` per arm, case and
-   controller), the batch sharded over every JAX device;
+3. simulate every applicable controller on all seeds at once (one ``jit(vmap)`` call per arm, case
+   and controller, the batch sharded over every JAX device), the cases with few obstacle slots
+   padded to common shapes so that one compilation per arm and controller serves them
+   (:func:`~redman_jax._pipeline.study_shapes`);
 4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing).
 
-``jobs > 1`` runs the (arm, case) groups in that many worker processes (``spawn``): XLA compiles
-on one thread, so on a CPU machine two workers keep two cores busy through the compile-heavy parts
-(one compilation per arm, case and controller). The results are the same as with one process
+``jobs > 1`` runs the groups in that many worker processes (``spawn``): first the builds (one
+group per arm and case), then the simulations (one group per arm and controller, its cases in one
+process so that they share the compilation). XLA compiles on one thread, so on a CPU machine two
+workers keep two cores busy through the compile-heavy parts. The results are the same as with one process
 (each unit is a deterministic function of its configuration; tested).
 
 At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` hold one row per run, ``DIR/traces/`` the
@@ -177,16 +180,23 @@ def _jobs(value) -> int:
 
 
 def _units(cfg: SweepConfig):
-    """``{(arm, case): [(kind, arm, case, ctrl, name, key), ...]}`` in execution order."""
-    groups = {}
+    """The two phases of a sweep, each ``{group: [(kind, arm, case, ctrl, name, key), ...]}``:
+    the scenario builds, one group per (arm, case), then the simulations, one group per (arm,
+    controller) over its cases. A group runs in one process, so the simulations of an arm and
+    controller share one compilation (every case is padded to the same shapes,
+    :func:`~redman_jax._pipeline.run_controller`)."""
+    builds, sims = {}, {}
     for arm in cfg.arms:
         label = _arm_label(arm)
         for case in cfg.cases:
-            g = groups.setdefault((arm, case), [])
-            g.append(("scen", arm, case, None, f"scen_{label}_{case}", _scenario_key(cfg, arm, case)))
-            for ctrl in cfg.controllers_for(case):
-                g.append(("run", arm, case, ctrl, f"run_{label}_{case}_{ctrl}", _run_key(cfg, arm, case, ctrl)))
-    return groups
+            builds[(arm, case)] = [("scen", arm, case, None, f"scen_{label}_{case}",
+                                    _scenario_key(cfg, arm, case))]
+        for ctrl in cfg.controllers:
+            g = [("run", arm, case, ctrl, f"run_{label}_{case}_{ctrl}", _run_key(cfg, arm, case, ctrl))
+                 for case in cfg.cases if ctrl in cfg.controllers_for(case)]
+            if g:
+                sims[(arm, ctrl)] = g
+    return builds, sims
 
 
 def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
@@ -200,14 +210,16 @@ def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
         payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
     else:
         scen = store.load(f"scen_{_arm_label(arm_spec)}_{case}")
-        payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl))
+        cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
+        payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl),
+                                      shapes=pipe.study_shapes(cases, cfg.ts)[case])
         payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
     store.save(name, key, payload)
 
 
 def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
-    """Run ``units`` (the missing units of one (arm, case) group, in order); ``report(name,
-    seconds)`` after each (the progress bar; in a worker, the parent's queue)."""
+    """Run ``units`` (the missing units of one group, in order); ``report(name, seconds)`` after
+    each (the progress bar; in a worker, the parent's queue)."""
     import jax
 
     store = UnitStore(Path(cfg.out))
@@ -215,44 +227,51 @@ def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
     for unit in units:
         t0 = time.perf_counter()
         _run_unit(cfg, store, arms, unit)
-        # Units share no compiled programs (each has its own shapes), and every XLA CPU executable
-        # keeps its code in memory mappings: about 2,000-2,600 per simulation, so a process that
-        # kept them all reached Linux's vm.max_map_count (65,530) after about 25 units, and the
-        # next compile died with "LLVM compilation error: Cannot allocate memory" (a full study on
-        # 2 cores lost a worker that way twice). Dropping the caches returns the mappings.
-        jax.clear_caches()
         if report is not None:
             report((unit[4], time.perf_counter() - t0))
+    # Every XLA CPU executable keeps its code in memory mappings: about 2,000-2,600 per simulation,
+    # and a process that kept every group's programs reached Linux's vm.max_map_count (65,530)
+    # after about 25 units ("LLVM compilation error: Cannot allocate memory"; a full study on 2
+    # cores lost a worker that way twice). The units of a group share their simulation's program;
+    # dropping the caches after the group returns the mappings.
+    jax.clear_caches()
 
 
-# expected relative cost of a case's group (samples x obstacles), to start the long ones first
+# expected relative cost of a group, to start the long ones first
 _CASE_WEIGHT = {"warehouse": 3, "agriculture": 3, "simple": 2, "welding": 2, "inspection": 1}
+_CTRL_WEIGHT = {"gradient": 4, "acceleration": 3, "velocity": 3, "velocity_original": 3}
+
+
+def _weight(key) -> float:
+    return _CASE_WEIGHT.get(key[1], 0) + _CTRL_WEIGHT.get(key[1], 1)
 
 
 def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     """Run (or resume) a sweep; returns the results folder. (``_worker_init``: a picklable callable
     each worker process runs first; tests install their stand-in units with it.)
 
-    Every unit ends with ``jax.clear_caches()`` (see :func:`_run_group`): with ``jobs=1`` the units
-    run in the calling process, whose other jitted functions then compile again on their next call.
+    The scenario builds run first, then the simulations (:func:`_units`). Every group ends with
+    ``jax.clear_caches()`` (see :func:`_run_group`): with ``jobs=1`` the groups run in the calling
+    process, whose other jitted functions then compile again on their next call.
     """
     out = Path(cfg.out)
     store = UnitStore(out)
     atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
-    groups = _units(cfg)
-    progress = Progress(sum(len(g) for g in groups.values()), "units", enabled=cfg.progress)
-    todo = {}
-    for gk, group in groups.items():
-        missing = [u for u in group if not store.has(u[4], u[5])]
-        if len(missing) < len(group):
-            progress.skip(len(group) - len(missing))
-        if missing:
-            todo[gk] = missing
-    if cfg.jobs > 1 and len(todo) > 1:
-        _run_parallel(cfg, todo, progress, _worker_init)
-    else:
-        for units in todo.values():
-            _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
+    phases = _units(cfg)
+    progress = Progress(sum(len(g) for ph in phases for g in ph.values()), "units", enabled=cfg.progress)
+    for groups in phases:
+        todo = {}
+        for gk, group in groups.items():
+            missing = [u for u in group if not store.has(u[4], u[5])]
+            if len(missing) < len(group):
+                progress.skip(len(group) - len(missing))
+            if missing:
+                todo[gk] = missing
+        if cfg.jobs > 1 and len(todo) > 1:
+            _run_parallel(cfg, todo, progress, _worker_init)
+        else:
+            for units in todo.values():
+                _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
     rows = collect_rows(cfg, store)
     write_table(out, rows)
     if cfg.figures:
@@ -269,7 +288,7 @@ def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -
     import queue as queue_mod
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    order = sorted(todo, key=lambda k: -_CASE_WEIGHT.get(k[1], 1))
+    order = sorted(todo, key=lambda k: -_weight(k))
     worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
     ctx = mp.get_context("spawn")
     with ctx.Manager() as manager, ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx,
