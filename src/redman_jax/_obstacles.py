@@ -239,11 +239,16 @@ def fold_slots(obs: ObstacleSet, family: int, init, step):
 
 
 # Elements (batch x points x slots) one step of a slot scan should cover. Measured on a 2-core x86
-# CPU, the 9-DOF arm's closed loop (velocity OSC, 36 points), us per state and evaluation, by
-# slots per step: warehouse (146 box slots) at batch 20: 1 slot 77, 16 slots 59, 29 slots 46,
-# 37 slots 43, 73 slots 54; at batch 100: 1 slot 29, 9 slots 36; at batch 256: 1 slot 27, 8 slots 36.
-# Agriculture (21 cylinder slots) at batch 20: 1 slot 16, 7 slots 20, all 21 slots 29: with few
-# slots the loop overhead is small and one slot per step stays best (``_MIN_GROUPED_SLOTS``).
+# CPU (scripts in the issue 7 note of session 5), us per state and evaluation:
+# * the 9-DOF closed loop (velocity OSC, 36 points) inside a fori_loop, batch 20, warehouse
+#   compacted to 97 box slots: 1 slot per step 64, all 97 in one step 69, three groups of 33: 45,
+#   a head of two groups of 8 then two of 41 (``slot_steps``): 40; padded to 146 slots with the
+#   used-slot bound: 42. Inspection (5 boxes) padded to 146 box slots: 15, against 12 unpadded.
+# * the two obstacle passes alone (146 box slots, 24 random points): batch 20: 1 slot 78,
+#   8 slots 40, 37 slots 28; batch 1024: 1 slot 22, 2 slots 24, 8 slots 38, 146 slots 118
+#   (out of cache), so large batches keep one slot per step.
+# * agriculture (21 cylinder slots): fewer than 32 slots keep one slot per step
+#   (``_MIN_GROUPED_SLOTS``); with few steps the loop overhead is small.
 _STEP_ELEMENTS = 1 << 15
 _MIN_GROUPED_SLOTS = 32
 _HEAD_GROUP = 8
@@ -252,9 +257,10 @@ _HEAD_SLOTS = 16
 
 def auto_slots_per_step(batch: int, n_points: int) -> int:
     """Slots per step for a batch of ``batch`` states with ``n_points`` points each: about
-    ``2**15`` elements per step, and one slot per step where that would be fewer than 8 slots."""
+    ``2**15`` elements per step, and one slot per step where that would be fewer than 16 slots
+    (36 points: up to batch 56; measured at batch 20, see ``_STEP_ELEMENTS``)."""
     s = _STEP_ELEMENTS // max(1, int(batch) * int(n_points))
-    return 1 if s < 8 else int(s)
+    return 1 if s < 16 else int(s)
 
 
 def _grouped(fam: Shapes, start: int, stop: int, c: int):

@@ -110,9 +110,9 @@ class SimParams(eqx.Module):
       ``even_steps``: split the rest of each sample into equal steps (horizon mode, see
       ``_EvenSplit``); ``slots_per_step``: obstacle slots per step of the per-point passes
       (:class:`~redman_jax.ObstacleSet`; None: :func:`~redman_jax._obstacles.auto_slots_per_step`
-      of the batch size and the points of interest: 37 box slots per step for 20 9-DOF states,
-      one at a time at 256 and more; the same results to rounding, the warehouse closed loop 1.8x
-      cheaper at batch 20); ``stop_early``: a gradient-guided member stops stepping at the stop
+      of the batch size and the points of interest: up to 45 slots per step for 20 9-DOF states,
+      one at a time from batch 57 on; the same results to rounding, the warehouse closed loop
+      1.6x cheaper at batch 20); ``stop_early``: a gradient-guided member stops stepping at the stop
       rule (horizon mode; the results are the same, see :func:`_solve_guided_stepper`).
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
