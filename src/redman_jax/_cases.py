@@ -889,13 +889,13 @@ def _plan(case, scenes, seeds_used, info: _ArmInfo, prm: CaseParams, batch: int)
 def _check_planned(sc: _Scene, ref: Reference, info: _ArmInfo, prm: CaseParams) -> str | None:
     """Host checks of a planned reference: clearance and the reach rule on oriented samples."""
     n = int(ref.n_samples)
-    p = np.asarray(ref.p[:n])
+    p = np.asarray(ref.p)[:n]  # sliced on the host (an eager jnp slice compiles once per n)
     if not np.all(np.isfinite(p)):
         return "planner_nan"
     if np.any(_min_clearance(sc, p) < prm.rrt_path_clearance):
         return "rrt_path_clearance"
-    on = np.asarray(ref.rot[:n]) > 0
-    if np.any(~reach_ok(p[on], np.asarray(ref.quat[:n])[on], info.L_h, prm)):
+    on = np.asarray(ref.rot)[:n] > 0
+    if np.any(~reach_ok(p[on], np.asarray(ref.quat)[:n][on], info.L_h, prm)):
         return "reach"
     return None
 

@@ -554,10 +554,10 @@ def _validate_jit(fn, scenario, ik_result, batched):
 def _pad_batch(tree, size: int):
     """Pad a stacked pytree along its leading axis to ``size`` by repeating its last member (a
     fixed batch size, so every retry round reuses one compilation)."""
-    def pad(x):
-        x = jnp.asarray(x)
+    def pad(x):  # on the host: eager jnp ops would compile once per leaf shape (~5 s per build)
+        x = np.asarray(x)
         extra = size - x.shape[0]
-        return x if extra <= 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])
+        return x if extra <= 0 else np.concatenate([x, np.repeat(x[-1:], extra, axis=0)])
     return jax.tree.map(pad, tree)
 
 
@@ -588,7 +588,7 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
 
     def run(batch: Scenario):
         b = int(batch.seed.shape[0])
-        res = ik_trajectory(arm, _pad_batch(batch, B), params)
+        res = jax.tree.map(np.asarray, ik_trajectory(arm, _pad_batch(batch, B), params))
         seed, used = np.asarray(batch.seed), np.asarray(batch.seed_used)
         for j in range(b):
             cache[(int(seed[j]), int(used[j]))] = jax.tree.map(lambda x, j=j: x[j], res)
@@ -608,4 +608,4 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     if missing:  # e.g. candidates whose generation never succeeded: run their IK for the record
         run(jax.tree.map(lambda x: x[np.asarray(missing)], scen))
     results = [cache[k] for k in keys]
-    return scen, jax.tree.map(lambda *xs: jnp.stack(xs), *results)
+    return scen, jax.tree.map(lambda *xs: jnp.asarray(np.stack(xs)), *results)
