@@ -576,7 +576,7 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     within ``max_retries`` moves (if not, the last candidate comes back with ``valid = False``).
     ``stats`` (a dict), if given, receives the generator's rejection counts.
     """
-    from ._cases import make_scenarios
+    from ._cases import _stack, make_scenarios
 
     seeds = [int(s) for s in np.atleast_1d(np.asarray(seeds))]
     if not seeds:
@@ -608,4 +608,4 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     if missing:  # e.g. candidates whose generation never succeeded: run their IK for the record
         run(jax.tree.map(lambda x: x[np.asarray(missing)], scen))
     results = [cache[k] for k in keys]
-    return scen, jax.tree.map(lambda *xs: jnp.asarray(np.stack(xs)), *results)
+    return scen, _stack(results)
