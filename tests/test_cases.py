@@ -409,6 +409,39 @@ def test_validate_hook_moves_the_seed(arms):
     assert not bool(bad.valid) and int(bad.seed_used) == 2003
 
 
+def test_retry_rounds_fill_the_batch_speculatively(arms):
+    """A round holds the next attempts of the pending seeds up to the batch size; per seed the first
+    passing attempt wins and only the attempts up to it are counted: the outcome and the stats
+    equal trying one attempt at a time (a batch of one, no room to speculate)."""
+    arm = arms[9]
+    calls = []
+
+    def reject(bad):
+        def validate(batch):
+            used = np.asarray(batch.seed_used)
+            calls.append(used.tolist())
+            return ~np.isin(used, bad)
+        return validate
+
+    stats = collections.Counter()
+    sc = make_scenarios("inspection", [3, 4, 5], arm, validate=reject([3, 1003, 4]), stats=stats)
+    np.testing.assert_array_equal(np.asarray(sc.seed_used), [2003, 1004, 5])
+    assert calls == [[3, 4, 5], [1003, 2003, 1004]]  # round 2: seed 3 at +1000 and +2000 at once
+    one = collections.Counter()
+    for seed in (3, 4, 5):
+        single = make_valid_scenario("inspection", seed, arm, validate=reject([3, 1003, 4]), stats=one)
+        j = [3, 4, 5].index(seed)
+        for x, y in zip(jax.tree.leaves(single), jax.tree.leaves(sc)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y)[j])
+    assert stats == one and stats["reject:validate"] == 3 and stats["accepted"] == 3
+    calls.clear()
+    stats = collections.Counter()
+    sc = make_scenarios("inspection", [3, 4, 5], arm, validate=reject([3]), stats=stats)
+    assert calls[1] == [1003, 2003, 3003]  # speculative; 2003 and 3003 are dropped
+    assert int(sc.seed_used[0]) == 1003
+    assert stats["seeds_tried"] == 4 and stats["reject:validate"] == 1 and stats["accepted"] == 3
+
+
 def test_rrt_cases_plan_in_one_batch(arms):
     """Two simple-obstacle scenes planned by one jit(vmap(rrt_reference)); the order of seeds in
     the batch does not change a scene (same compiled batch size, no recompilation)."""

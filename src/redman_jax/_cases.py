@@ -929,8 +929,54 @@ def _check_seed(seed) -> int:
     return int(seed)
 
 
+@dataclasses.dataclass
+class _Candidate:
+    """One retry candidate ``seed + RETRY_STRIDE * attempt`` of one seed within a round."""
+
+    seed_used: int
+    stats: collections.Counter  # what trying it counted (merged only if the seed got this far)
+    scene: Any = None
+    ref: Any = None  # geometric reference (None for RRT cases until planned)
+    scenario: Any = None
+    reason: str | None = None  # why it was rejected; None while it stands
+
+
+def _next_candidates(pending, nxt, seeds, max_retries, size, draw):
+    """Draw the round's candidates: every pending seed its next attempt, then (while the round has
+    room for ``size``) the attempt after that, and so on, round robin. Attempts whose draws are
+    exhausted take no room. Returns ``{seed index: [candidates in attempt order]}``."""
+    cands = {i: [] for i in pending}
+    room, grew = size, True
+    while room > 0 and grew:
+        grew = False
+        for i in pending:
+            while room > 0 and nxt[i] <= max_retries:
+                c = _Candidate(seeds[i] + RETRY_STRIDE * nxt[i], collections.Counter())
+                nxt[i] += 1
+                c.stats["seeds_tried"] += 1
+                drawn = draw(c.seed_used, c.stats)
+                cands[i].append(c)
+                if drawn is None:
+                    c.reason = "draws_exhausted"
+                    continue
+                c.scene, c.ref = drawn
+                room -= 1
+                grew = True
+                break
+    return cands
+
+
 def _build(case, seeds, arm, params, validate, max_retries, stats):
-    """Generate, plan and validate a batch of seeds with the seed += 1000 retry rule."""
+    """Generate, plan and validate a batch of seeds with the seed += 1000 retry rule.
+
+    Rounds of at most ``len(seeds)`` candidates (the batch the planner and ``validate`` are
+    compiled for). A round holds the next attempt of every pending seed and fills its remaining
+    room with the attempts after those (speculatively: a seed retried at ``+1000`` is tried at
+    ``+2000`` in the same round), so a build needs about ``candidates / len(seeds)`` rounds rather
+    than one per retry. Per seed the first candidate, in attempt order, that passes is accepted:
+    the outcome (``seed_used``, scenario, and the ``stats`` counts, merged only up to the accepted
+    attempt) equals trying the attempts one at a time; later attempts of the round are dropped.
+    """
     case = _check_case(case)
     prm = _check_params(params)
     seeds = [_check_seed(s) for s in seeds]
@@ -944,57 +990,42 @@ def _build(case, seeds, arm, params, validate, max_retries, stats):
     gen = _GENERATORS[case]
     stats = collections.Counter() if stats is None else stats
     B = len(seeds)
-    attempt = [0] * B
+    nxt = [0] * B  # the next attempt to draw, per seed
     out: list[Scenario | None] = [None] * B
     last: list[tuple | None] = [None] * B
     pending = list(range(B))
+    draw = lambda su, st: _draw(gen, su, info, prm, P.capacity, st)
     while pending:
-        ready = []  # (i, seed_used, scene, reference or None)
-        for i in pending:
-            while attempt[i] <= max_retries:
-                su = seeds[i] + RETRY_STRIDE * attempt[i]
-                stats["seeds_tried"] += 1
-                drawn = _draw(gen, su, info, prm, P.capacity, stats)
-                if drawn is None:
-                    stats["reject:draws_exhausted"] += 1
-                    attempt[i] += 1
-                    continue
-                ready.append((i, su) + drawn)
-                break
-        if not ready:
-            break
-        if case in RRT_CASES:
-            refs, ok = _plan(case, [r[2] for r in ready], [r[1] for r in ready], info, prm, B)
-            planned = []
-            for j, (i, su, sc, _) in enumerate(ready):
-                ref_j = jax.tree.map(lambda x: jnp.asarray(x[j]), refs)
-                reason = None if ok[j] else "planner_failure"
-                reason = reason or _check_planned(sc, ref_j, info, prm)
-                if reason:
-                    stats[f"reject:{reason}"] += 1
-                    last[i] = (su, sc, ref_j)
-                    attempt[i] += 1
-                    continue
-                planned.append((i, su, sc, ref_j))
-            ready = planned
-        scen = [(i, su, _to_scenario(case, sc, ref, seeds[i], su, True, caps)) for i, su, sc, ref in ready]
-        if validate is not None and scen:
-            verdict = np.asarray(validate(_stack([s for _, _, s in scen])), dtype=bool).reshape(-1)
-            if verdict.shape != (len(scen),):
-                raise ValueError(f"validate: returned {verdict.shape} verdicts for {len(scen)} scenarios")
-        else:
-            verdict = np.ones(len(scen), bool)
-        done = set()
-        for (i, su, s), v in zip(scen, verdict):
-            if v:
-                out[i] = s
-                done.add(i)
-                stats["accepted"] += 1
-            else:
-                stats["reject:validate"] += 1
-                last[i] = (su, None, s)
-                attempt[i] += 1
-        pending = [i for i in pending if i not in done and attempt[i] <= max_retries]
+        cands = _next_candidates(pending, nxt, seeds, max_retries, B, draw)
+        ready = [(i, c) for i in pending for c in cands[i] if c.reason is None]
+        if case in RRT_CASES and ready:
+            refs, ok = _plan(case, [c.scene for _, c in ready], [c.seed_used for _, c in ready], info, prm, B)
+            for j, (_, c) in enumerate(ready):
+                c.ref = jax.tree.map(lambda x: jnp.asarray(x[j]), refs)
+                c.reason = None if ok[j] else "planner_failure"
+                c.reason = c.reason or _check_planned(c.scene, c.ref, info, prm)
+            ready = [(i, c) for i, c in ready if c.reason is None]
+        for i, c in ready:
+            c.scenario = _to_scenario(case, c.scene, c.ref, seeds[i], c.seed_used, True, caps)
+        if validate is not None and ready:
+            verdict = np.asarray(validate(_stack([c.scenario for _, c in ready])), dtype=bool).reshape(-1)
+            if verdict.shape != (len(ready),):
+                raise ValueError(f"validate: returned {verdict.shape} verdicts for {len(ready)} scenarios")
+            for (_, c), v in zip(ready, verdict):
+                c.reason = None if v else "validate"
+        for i in pending:  # in attempt order: count what the one-at-a-time rule would have tried
+            for c in cands[i]:
+                stats.update(c.stats)
+                if c.reason is None:
+                    out[i] = c.scenario
+                    stats["accepted"] += 1
+                    break
+                stats[f"reject:{c.reason}"] += 1
+                if c.reason == "validate":
+                    last[i] = (c.seed_used, None, c.scenario)
+                elif c.reason != "draws_exhausted":
+                    last[i] = (c.seed_used, c.scene, c.ref)
+        pending = [i for i in pending if out[i] is None and nxt[i] <= max_retries]
     for i in range(B):
         if out[i] is None:
             stats["exhausted"] += 1
