@@ -511,7 +511,8 @@ def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params:
     **Raises:** ``ValueError`` naming the field for inconsistent shapes.
     """
     batched = reference.p.ndim == 3
-    ref0 = jax.tree.map(lambda x: x[0], reference) if batched else reference
+    # shapes only (an eager x[0] would compile a slice per leaf shape)
+    ref0 = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), reference) if batched else reference
     _check_reference(arm, ref0, q0)
     return _ik_jit(arm, reference, obstacles, params, q0, batched)
 

@@ -93,7 +93,7 @@ def build_case(arm, case: str, seeds, *, ts: float = 0.01, max_retries: int = 20
     again = make_scenarios(case, used, arm, params=case_params, max_retries=0)
     _block(again)
     t_plan = time.perf_counter() - t0
-    _block(ik_trajectory(arm, scen, IKParams()))  # compiled already by the validation above
+    # compiled and run already by the validation's retry rounds (same batch shape): no warm-up call
     t0 = time.perf_counter()
     _block(ik_trajectory(arm, scen, IKParams()))
     t_ik = time.perf_counter() - t0
