@@ -6,6 +6,8 @@ Small problems (7-DOF arm, one sphere, 1.5 s horizon, 0.2 s hold) keep the three
 this file to about two minutes of CPU.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -125,3 +127,34 @@ def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon):
     single2 = simulate(ARM, scs[2], CTRL, GAINS, params=PARAMS)
     np.testing.assert_allclose(np.asarray(batch.q[2]), np.asarray(single2.q), rtol=0, atol=1e-12)
     assert bool(batch.success[2]) == bool(single2.success)
+
+
+def test_straggler_compaction_changes_no_result(monkeypatch):
+    """simulate_batch moves the members still stepping to a smaller batch (forced here at once):
+    every output equals the one-program batch (compact=False) to rounding (separately compiled
+    programs: 3e-12 relative seen) and the step counts are the same."""
+    import redman_jax._sim as sim
+
+    scs = [SCEN, guided_scenario((0.1, -0.3, 0.0), seed=1), guided_scenario((-0.2, 0.2, 0.1), seed=2),
+           guided_scenario((0.05, 0.05, 0.05), seed=3)]
+    batch = stack_scenarios(scs)
+    monkeypatch.setattr(sim, "_CHECK_ITERS", 8)
+    monkeypatch.setattr(sim, "_RENT_ITERS", 16)
+    monkeypatch.setattr(sim, "_COMPACT_FRACTION", 2)
+    stats = {}
+    got = sim._simulate_guided_compacting(ARM, sim._with_layout(ARM, batch, PARAMS, 4), CTRL, GAINS,
+                                          None, None, PARAMS, None, None, stats=stats)
+    assert stats["compacted"] >= 1 and stats["small"] == 2, stats
+    again = sim._simulate_guided_compacting(ARM, sim._with_layout(ARM, batch, PARAMS, 4), CTRL, GAINS,
+                                            None, None, PARAMS, None, None)
+    np.testing.assert_array_equal(np.asarray(again.q), np.asarray(got.q))  # the switch is deterministic
+    ref = simulate_batch(ARM, batch, CTRL, GAINS, params=dataclasses.replace(PARAMS, compact=False))
+    np.testing.assert_array_equal(np.asarray(got.n_steps), np.asarray(ref.n_steps))
+    for name in ("q", "qd", "p", "pos_err", "estimates", "virtual_p", "time_to_goal", "path_length"):
+        np.testing.assert_allclose(np.asarray(getattr(got, name)), np.asarray(getattr(ref, name)),
+                                   rtol=1e-10, atol=1e-12, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(got.metrics.success), np.asarray(ref.metrics.success))
+    np.testing.assert_array_equal(np.asarray(got.mask), np.asarray(ref.mask))
+    # the public call takes the same path (default compact=True) and agrees too
+    pub = simulate_batch(ARM, batch, CTRL, GAINS, params=PARAMS)
+    np.testing.assert_allclose(np.asarray(pub.q), np.asarray(ref.q), rtol=1e-10, atol=1e-12)

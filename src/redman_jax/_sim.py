@@ -60,6 +60,7 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import diffrax
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int, PyTree
@@ -113,7 +114,10 @@ class SimParams(eqx.Module):
       of the batch size and the points of interest: up to 45 slots per step for 20 9-DOF states,
       one at a time from batch 57 on; the same results to rounding, the warehouse closed loop
       1.6x cheaper at batch 20); ``stop_early``: a gradient-guided member stops stepping at the stop
-      rule (horizon mode; the results are the same, see :func:`_solve_guided_stepper`).
+      rule (horizon mode; the results are the same, see :func:`_solve_guided_stepper`);
+      ``compact``: :func:`simulate_batch` of a gradient-guided controller in horizon mode moves the
+      last quarter of its members still stepping to a smaller batch (host-driven, outside any
+      ``jit``; the same results, see ``_simulate_guided_compacting``).
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
 
@@ -139,6 +143,7 @@ class SimParams(eqx.Module):
     even_steps: bool = eqx.field(static=True, default=True)
     slots_per_step: int | None = eqx.field(static=True, default=None)
     stop_early: bool = eqx.field(static=True, default=True)
+    compact: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.slots_per_step is not None and (not isinstance(self.slots_per_step, int)
@@ -513,32 +518,12 @@ def _guided_args(scenario, env0, buf, rot, n: int):
     return _goal_sample(scenario.goal_p, scenario.goal_quat, rot, n, rot.dtype), env
 
 
-def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, params, N, ts):
-    """Gradient-guided run as *one* adaptive integration over ``[0, N t_s]`` (``mode="horizon"``).
-
-    diffrax's ``Tsit5`` step and ``PIDController`` driven by our own ``lax.while_loop``, so that
-    the discrete update at every sample start (estimator -> virtual-obstacle buffer, orientation
-    latch; thesis 3.24-3.27) can be applied between two steps: a step never straddles a sample end
-    (the rest of a sample is split into equal steps, as ``_EvenSplit`` does), and after the step
-    that lands on an end the buffer is updated from the state there and the first stage is
-    re-evaluated (``made_jump``), exactly as the per-sample solves restart. The step size proposed
-    by the PID controller carries across the sample ends (a per-sample solve restarts from the
-    previous sample's mean step instead), so the steps differ from ``mode="per_sample"`` only at
-    the tolerance level.
-
-    A member stops at the stop rule (the goal error below ``goal_radius`` at ``hold_samples``
-    consecutive sample ends, :func:`~redman_jax._metrics.guidance_termination`): what comes after
-    the stop is never reported, and a run that reaches the goal no longer steps on to 6 s (under
-    ``vmap`` the loop runs for its slowest member).
-
-    Why: under ``vmap`` a scan of per-sample solves costs ``sum_k max_members(steps in sample
-    k)`` loop iterations; this loop costs ``max_members(total steps)`` (9-DOF simple case, 20
-    seeds: 18514 against 4590, ``benchmarks/bench_guided.py``). Forward only: differentiate gradient-guided runs
-    with ``mode="per_sample"`` (diffrax's checkpointed adjoint).
-    """
+def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params, N, ts):
+    """The pieces of :func:`_solve_guided_stepper` for one member: ``init(y0) -> carry``,
+    ``cond(carry)`` (still stepping), ``body(carry) -> carry`` (one step) and ``outputs(carry)``."""
     from ._guidance import VirtualBuffer
 
-    dtype = y0.q.dtype
+    dtype = scenario.goal_p.dtype
     n = arm.n_dof
     solver = _make_solver(params)
     pid = _pid(params)
@@ -557,20 +542,22 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
     def held_args(buf, rot):
         return _guided_args(scenario, env0, buf, rot, n)
 
-    buf, rot, x_min, valid = sample_start(y0, VirtualBuffer.empty(params.buffer_size, dtype),
-                                          jnp.zeros((), dtype))
-    args0 = held_args(buf, rot)
-    t0 = jnp.zeros((), dtype)
-    tnext, cstate = pid.init(term, t0, ts, y0, ts, args0, solver.func, error_order)
-    sstate = solver.init(term, t0, tnext, y0, args0)
-    zeros_like_rows = lambda x: jnp.zeros((N,) + x.shape, x.dtype)
-    carry0 = dict(
-        k=jnp.zeros((), jnp.int32), t=t0, tnext=tnext, y=y0, sstate=sstate, cstate=cstate,
-        made_jump=jnp.asarray(False), buf=buf, rot=rot,
-        ys=jax.tree.map(zeros_like_rows, y0),
-        est=jnp.zeros((N, 3), dtype).at[0].set(x_min), est_ok=jnp.zeros((N,), bool).at[0].set(valid),
-        rots=jnp.zeros((N,), dtype).at[0].set(rot),
-        steps=jnp.zeros((3,), jnp.int32), hold=jnp.zeros((), jnp.int32))
+    def init(y0):
+        buf, rot, x_min, valid = sample_start(y0, VirtualBuffer.empty(params.buffer_size, dtype),
+                                              jnp.zeros((), dtype))
+        args0 = held_args(buf, rot)
+        t0 = jnp.zeros((), dtype)
+        tnext, cstate = pid.init(term, t0, ts, y0, ts, args0, solver.func, error_order)
+        sstate = solver.init(term, t0, tnext, y0, args0)
+        zeros_like_rows = lambda x: jnp.zeros((N,) + x.shape, x.dtype)
+        return dict(
+            k=jnp.zeros((), jnp.int32), t=t0, tnext=tnext, y=y0, sstate=sstate, cstate=cstate,
+            made_jump=jnp.asarray(False), buf=buf, rot=rot,
+            ys=jax.tree.map(zeros_like_rows, y0),
+            est=jnp.zeros((N, 3), dtype).at[0].set(x_min), est_ok=jnp.zeros((N,), bool).at[0].set(valid),
+            rots=jnp.zeros((N,), dtype).at[0].set(rot),
+            steps=jnp.zeros((3,), jnp.int32), hold=jnp.zeros((), jnp.int32))
+
     max_steps = params.max_steps_per_sample * N
 
     def cond(c):
@@ -617,16 +604,47 @@ def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, p
                     cstate=cstate, made_jump=made_jump, buf=buf, rot=rot, ys=ys, est=est,
                     est_ok=est_ok, rots=rots, steps=steps, hold=hold)
 
-    c = jax.lax.while_loop(cond, body, carry0)
-    # Stopped by the rule, or out of steps: the rows not reached hold the last state. After the
-    # rule's stop that is the state at the stop, inside the radius, so the post-hoc rule of
-    # _simulate_guided finds the same stop; out of steps is flagged through status.
-    reached = jnp.arange(N) < c["k"]
-    ys = jax.tree.map(lambda rows, v: jnp.where(reached.reshape((N,) + (1,) * v.ndim), rows, v),
-                      c["ys"], c["y"])
-    stopped = (c["hold"] >= params.hold_samples) & params.stop_early
-    status = jnp.where((c["k"] < N) & ~stopped, diffrax.RESULTS.max_steps_reached._value, 0)
-    return ys, c["steps"], status, c["est"], c["est_ok"], c["rots"], c["buf"]
+
+    def outputs(c):
+        # Stopped by the rule, or out of steps: the rows not reached hold the last state. After the
+        # rule's stop that is the state at the stop, inside the radius, so the post-hoc rule of
+        # _simulate_guided finds the same stop; out of steps is flagged through status.
+        reached = jnp.arange(N) < c["k"]
+        ys = jax.tree.map(lambda rows, v: jnp.where(reached.reshape((N,) + (1,) * v.ndim), rows, v),
+                          c["ys"], c["y"])
+        stopped = (c["hold"] >= params.hold_samples) & params.stop_early
+        status = jnp.where((c["k"] < N) & ~stopped, diffrax.RESULTS.max_steps_reached._value, 0)
+        return ys, c["steps"], status, c["est"], c["est_ok"], c["rots"], c["buf"]
+
+    return init, cond, body, outputs
+
+
+def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, params, N, ts):
+    """Gradient-guided run as *one* adaptive integration over ``[0, N t_s]`` (``mode="horizon"``).
+
+    diffrax's ``Tsit5`` step and ``PIDController`` driven by our own ``lax.while_loop``, so that
+    the discrete update at every sample start (estimator -> virtual-obstacle buffer, orientation
+    latch; thesis 3.24-3.27) can be applied between two steps: a step never straddles a sample end
+    (the rest of a sample is split into equal steps, as ``_EvenSplit`` does), and after the step
+    that lands on an end the buffer is updated from the state there and the first stage is
+    re-evaluated (``made_jump``), exactly as the per-sample solves restart. The step size proposed
+    by the PID controller carries across the sample ends (a per-sample solve restarts from the
+    previous sample's mean step instead), so the steps differ from ``mode="per_sample"`` only at
+    the tolerance level.
+
+    A member stops at the stop rule (the goal error below ``goal_radius`` at ``hold_samples``
+    consecutive sample ends, :func:`~redman_jax._metrics.guidance_termination`): what comes after
+    the stop is never reported, and a run that reaches the goal no longer steps on to 6 s (under
+    ``vmap`` the loop runs for its slowest member).
+
+    Why: under ``vmap`` a scan of per-sample solves costs ``sum_k max_members(steps in sample
+    k)`` loop iterations; this loop costs ``max_members(total steps)`` (9-DOF simple case, 20
+    seeds: 18514 against 4590, ``benchmarks/bench_guided.py``). Forward only: differentiate gradient-guided runs
+    with ``mode="per_sample"`` (diffrax's checkpointed adjoint).
+    """
+    init, cond, body, outputs = _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams,
+                                                    params, N, ts)
+    return outputs(jax.lax.while_loop(cond, body, init(y0)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -702,15 +720,10 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
     ``mode="per_sample"``: a scan of per-sample solves (differentiable), which runs the full 6 s
     horizon. The stop rule is applied afterwards in both modes (exact, as stopping does not change
     the past); the horizon stepper also stops each member there, which saves its steps."""
-    from ._guidance import VirtualBuffer, field_params_or_default
+    from ._guidance import VirtualBuffer
 
-    dtype = scenario.goal_p.dtype
+    dtype, N, ts, fparams, env0, y0 = _guided_setup(arm, scenario, controller, gains, q0, qd0, params)
     n = arm.n_dof
-    N = params.guidance_samples
-    ts = scenario.reference.ts.astype(dtype)
-    fparams = field_params_or_default(params.field, gains)
-    env0 = make_environment(scenario.obstacles, scenario.goal_p, scenario.goal_quat, params.buffer_size)
-    y0 = _initial_state(arm, controller, q0, qd0, dtype)
     buf0 = VirtualBuffer.empty(params.buffer_size, dtype)
 
     def body(carry, k):
@@ -729,6 +742,25 @@ def _simulate_guided(arm, scenario, controller, gains, q0, qd0, params) -> SimRe
         (_, _, buf, _), (ys, stats, status, est, est_ok, rots) = jax.lax.scan(body, carry0,
                                                                               jnp.arange(N))
         steps = stats.sum(0)
+    return _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est_ok, rots, buf)
+
+
+def _guided_setup(arm, scenario, controller, gains, q0, qd0, params):
+    """``(dtype, N, ts, fparams, env0, y0)`` of a gradient-guided run."""
+    from ._guidance import field_params_or_default
+
+    dtype = scenario.goal_p.dtype
+    N = params.guidance_samples
+    ts = scenario.reference.ts.astype(dtype)
+    fparams = field_params_or_default(params.field, gains)
+    env0 = make_environment(scenario.obstacles, scenario.goal_p, scenario.goal_quat, params.buffer_size)
+    y0 = _initial_state(arm, controller, q0, qd0, dtype)
+    return dtype, N, ts, fparams, env0, y0
+
+
+def _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est_ok, rots, buf):
+    """The :class:`SimResult` of a gradient-guided run from its per-sample states and counters."""
+    dtype = ts.dtype
     status = jnp.max(status).astype(jnp.int32)
     p, quat = _ee_pose_batch(arm, ys.q)
     goal_err = position_errors(p, jnp.broadcast_to(scenario.goal_p, p.shape))
@@ -835,6 +867,118 @@ def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params
     return jax.vmap(one, in_axes=in_axes)(scenarios, gains, jref, q0, qd0)
 
 
+# --------------------------------------------------------------------------------------------
+# gradient-guided batches: straggler compaction (host-driven, forward only)
+
+# A guided batch under ``vmap`` steps until its slowest member stops (7-DOF simple, 20 seeds: 926 to
+# 2902 steps; in 8-DOF warehouse two members take 35,717 and 38,400 steps, the others at most
+# 9,727). The host advances the batch ``_CHECK_ITERS`` loop iterations per call; once at most
+# ``ceil(R / _COMPACT_FRACTION)`` members are still stepping and have stepped ``_RENT_ITERS`` more
+# iterations at full size (about what compiling the smaller program costs: ski rental), they move to
+# a batch of that size. The switch depends on step counts only, never on wall time, so the same
+# inputs give the same results. The members take the same steps as in one ``vmap`` over the whole
+# batch and agree with it to rounding (separately compiled programs: 3e-12 relative in
+# tests/test_sim_guided.py); a member that chatters through its step budget can amplify that (the
+# 8-DOF warehouse member above ends 4.6e-4 rad apart, with the same steps and outcome).
+_COMPACT_FRACTION = 4
+_CHECK_ITERS = 512
+_RENT_ITERS = 2048
+
+
+def _guided_member(arm, s, controller, g, q0, qd0, params, used):
+    s = eqx.tree_at(lambda sc: sc.obstacles, s, with_used(s.obstacles, used))
+    dtype, N, ts, fparams, env0, y0 = _guided_setup(arm, s, controller, g, q0, qd0, params)
+    return s, y0, N, ts, _guided_stepper_fns(arm, controller, g, s, env0, fparams, params, N, ts)
+
+
+@eqx.filter_jit
+def _compact_init(arm, scen, controller, gains, q0, qd0, params, used, axes):
+    def one(s, g, q, qd):
+        _, y0, _, _, (init, cond, _, _) = _guided_member(arm, s, controller, g, q, qd, params, used)
+        c = init(y0)
+        return c, cond(c)
+
+    return jax.vmap(one, in_axes=(0,) + axes)(scen, gains, q0, qd0)
+
+
+@eqx.filter_jit
+def _compact_advance(arm, scen, controller, gains, q0, qd0, params, used, axes, carry, cap):
+    def one(s, g, q, qd, c):
+        _, _, _, _, (_, cond, body, _) = _guided_member(arm, s, controller, g, q, qd, params, used)
+        c = jax.lax.while_loop(lambda c: cond(c) & (c["steps"][0] < cap), body, c)
+        return c, cond(c)
+
+    return jax.vmap(one, in_axes=(0,) + axes + (0,))(scen, gains, q0, qd0, carry)
+
+
+@eqx.filter_jit
+def _compact_finish(arm, scen, controller, gains, q0, qd0, params, used, axes, carry):
+    def one(s, g, q, qd, c):
+        s, y0, N, ts, (_, _, _, outputs) = _guided_member(arm, s, controller, g, q, qd, params, used)
+        return _guided_result(arm, s, params, y0, N, ts, *outputs(c))
+
+    return jax.vmap(one, in_axes=(0,) + axes + (0,))(scen, gains, q0, qd0, carry)
+
+
+def _used_host(obs) -> Array:
+    """:func:`~redman_jax._obstacles.used_bound` on the host (no eager compilation)."""
+    def last(f):
+        m = np.asarray(f.mask).reshape(-1, f.mask.shape[-1])
+        idx = np.where(m, np.arange(1, m.shape[-1] + 1), 0)
+        return int(idx.max()) if idx.size else 0
+
+    return jnp.asarray(np.array([last(obs.spheres), last(obs.boxes), last(obs.cylinders)], np.int32))
+
+
+def _take_rows(tree, idx, axis_batched=True):
+    return tree if not axis_batched else jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[idx]), tree)
+
+
+def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, params, gains_axis,
+                                q0_axis, stats=None) -> SimResult:
+    """:func:`simulate_batch` of a gradient-guided controller in ``mode="horizon"`` with straggler
+    compaction (see ``_COMPACT_FRACTION``). ``stats`` (a dict), if given, records what happened."""
+    R = int(scenarios.goal_p.shape[0])
+    used = _used_host(scenarios.obstacles)
+    axes = (gains_axis, q0_axis, q0_axis)
+    args = (arm, scenarios, controller, gains, q0, qd0, params, used, axes)
+    small = -(-R // _COMPACT_FRACTION)
+    max_steps = params.max_steps_per_sample * params.guidance_samples
+    carry, active = _compact_init(*args)
+    done, few_since, compacted, calls = 0, None, 0, 0
+    while True:
+        act = np.asarray(active)
+        n_act = int(act.sum())
+        if n_act == 0 or done >= max_steps:
+            break
+        if R > small and n_act <= small:
+            few_since = done if few_since is None else few_since
+            if done - few_since >= _RENT_ITERS:
+                idx = np.flatnonzero(act)
+                pidx = np.concatenate([idx, np.full(small - idx.size, idx[-1])])
+                sub = (arm, _take_rows(scenarios, pidx), controller,
+                       _take_rows(gains, pidx, gains_axis == 0), _take_rows(q0, pidx, q0_axis == 0),
+                       _take_rows(qd0, pidx, q0_axis == 0), params, used, axes)
+                sub_carry, _ = _compact_advance(*sub, _take_rows(carry, pidx),
+                                                jnp.asarray(max_steps, jnp.int32))
+
+                def put(full, part):
+                    full = np.array(full)
+                    full[idx] = np.asarray(part)[: idx.size]
+                    return jnp.asarray(full)
+
+                carry = jax.tree.map(put, carry, sub_carry)
+                compacted = idx.size
+                break
+        done = min(done + _CHECK_ITERS, max_steps)
+        carry, active = _compact_advance(*args, carry, jnp.asarray(done, jnp.int32))
+        calls += 1
+    if stats is not None:
+        stats.update(full_batch_calls=calls, compacted=compacted, compacted_at=done if compacted else None,
+                     batch=R, small=small)
+    return _compact_finish(*args, carry)
+
+
 def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController, gains, ik=None,
                    params: SimParams | None = None, *, batch_gains: bool = False, q0=None,
                    qd0=None) -> SimResult:
@@ -846,6 +990,11 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     Each member keeps its own step sizes; a member that diverges is frozen and flagged and does not
     change the others (they are bit-identical to a batch without it). Returns a :class:`SimResult`
     with a leading axis ``R``.
+
+    A gradient-guided controller in ``mode="horizon"`` (forward only) is stepped by a few jitted
+    calls driven from the host, so that its last stragglers can move to a smaller batch
+    (``params.compact``; see ``_simulate_guided_compacting``); called with tracers (inside the
+    caller's ``jit``) it is one ``jit(vmap)`` program as for the other controllers.
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenarios, controller, ik, batched=True)
@@ -853,8 +1002,17 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     if q0 is not None and qd0 is None:
         qd0 = jnp.zeros_like(jnp.asarray(q0))
     scenarios = _with_layout(arm, scenarios, params, scenarios.reference.p.shape[0])
+    gains_axis, q0_axis = 0 if batch_gains else None, None if q0 is None else 0
+    if (controller.uses_guidance and params.mode == "horizon" and params.compact
+            and not _has_tracer((scenarios, gains, q0, qd0, params))):
+        return _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, params,
+                                           gains_axis, q0_axis)
     return _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params,
-                               0 if batch_gains else None, None if q0 is None else 0)
+                               gains_axis, q0_axis)
+
+
+def _has_tracer(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
 
 @eqx.filter_jit
