@@ -1073,7 +1073,9 @@ def make_scenarios(case: str, seeds, arm: Arm, params: CaseParams | None = None,
 
     All share the case's capacities. The RRT cases plan all pending seeds at once with one
     ``jit(vmap(rrt_reference))``; failed seeds are regenerated at ``seed + 1000`` and planned
-    again. ``validate``, if given, maps a stacked batch to ``(B,)`` bools.
+    again. ``validate``, if given, maps a stacked batch (at most ``len(seeds)`` candidates) to
+    bools. A retry round fills the batch with later attempts of the pending seeds; per seed the
+    first attempt that passes is kept, as if the attempts were tried one at a time.
     """
     seeds = list(seeds)
     if not seeds:

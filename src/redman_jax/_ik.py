@@ -569,8 +569,10 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     A candidate is accepted when its generation (and, for the RRT cases, planning) succeeded and its
     IK trajectory passes :func:`validate_ik`. The candidates come from
     :func:`redman_jax._cases.make_scenarios`, which moves a seed on by 1000 on a generation
-    failure and calls back here with every retry round's candidates stacked: the IK of all pending
-    seeds runs as one batch, padded to ``len(seeds)`` so that all rounds share one compilation.
+    failure and calls back here with every retry round's candidates stacked (the next attempt of
+    every pending seed, the room left filled with their later attempts): the IK of a round runs as
+    one batch, padded to ``len(seeds)`` so that all rounds share one compilation. The outcome is the
+    one of trying each seed's attempts in order.
 
     **Returns:** ``(scenarios, ik_results)`` stacked in the order of ``seeds``; ``scenario.seed`` is
     the requested seed, ``seed_used`` the seed that produced it, ``valid`` whether one was found
