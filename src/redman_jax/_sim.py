@@ -923,14 +923,7 @@ def _compact_finish(arm, scen, controller, gains, q0, qd0, params, used, axes, c
     return jax.vmap(one, in_axes=(0,) + axes + (0,))(scen, gains, q0, qd0, carry)
 
 
-def _used_host(obs) -> Array:
-    """:func:`~redman_jax._obstacles.used_bound` on the host (no eager compilation)."""
-    def last(f):
-        m = np.asarray(f.mask).reshape(-1, f.mask.shape[-1])
-        idx = np.where(m, np.arange(1, m.shape[-1] + 1), 0)
-        return int(idx.max()) if idx.size else 0
-
-    return jnp.asarray(np.array([last(obs.spheres), last(obs.boxes), last(obs.cylinders)], np.int32))
+_used_bound_jit = jax.jit(used_bound)  # one small compilation per shape (eagerly: one per op)
 
 
 def _take_rows(tree, idx, axis_batched=True):
@@ -942,7 +935,7 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
     """:func:`simulate_batch` of a gradient-guided controller in ``mode="horizon"`` with straggler
     compaction (see ``_COMPACT_FRACTION``). ``stats`` (a dict), if given, records what happened."""
     R = int(scenarios.goal_p.shape[0])
-    used = _used_host(scenarios.obstacles)
+    used = _used_bound_jit(scenarios.obstacles)
     axes = (gains_axis, q0_axis, q0_axis)
     args = (arm, scenarios, controller, gains, q0, qd0, params, used, axes)
     small = -(-R // _COMPACT_FRACTION)
