@@ -18,8 +18,16 @@ def run_controller(arm, scen, ctrl, gains=None, **kw):
 
 
 def install():
-    """Worker initializer: replace the real units in this process."""
+    """Worker initializer: replace the real units in this process (and, if the test asks for it,
+    record the cores this worker may run on)."""
+    import os
+
     import redman_jax._pipeline as pipe
+
+    folder = os.environ.get("REDMAN_TEST_AFFINITY_DIR")
+    if folder and hasattr(os, "sched_getaffinity"):
+        with open(os.path.join(folder, f"{os.getpid()}.txt"), "w") as f:
+            f.write(",".join(str(c) for c in sorted(os.sched_getaffinity(0))))
 
     pipe.build_case = build_case
     pipe.run_controller = run_controller

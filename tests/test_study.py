@@ -139,20 +139,35 @@ def test_changed_configuration_recomputes(monkeypatch, tmp_path):
 
 
 def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
-    """``jobs=2``: the (arm, case) groups run in two spawned worker processes; every unit is computed
-    once, the table equals the one-process sweep, and a rerun computes nothing."""
+    """``jobs=2``: the (arm, case) groups run in two spawned worker processes, each pinned to a core
+    of its own where the machine has two; every unit is computed once, the table equals the
+    one-process sweep, and a rerun computes nothing."""
     import dataclasses
 
     import _fake_units
+
+    from redman_jax._study import _worker_cores
 
     calls = []
     _fake_pipeline(monkeypatch, calls)
     run_sweep(_config(tmp_path / "serial"))
     tests_dir = os.path.dirname(os.path.abspath(__file__))
     monkeypatch.setenv("PYTHONPATH", tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    affinity = tmp_path / "affinity"
+    affinity.mkdir()
+    monkeypatch.setenv("REDMAN_TEST_AFFINITY_DIR", str(affinity))
     cfg = dataclasses.replace(_config(tmp_path / "parallel"), jobs=2)
     run_sweep(cfg, _worker_init=_fake_units.install)
     assert load_runs(tmp_path / "parallel") == load_runs(tmp_path / "serial")
+    if hasattr(os, "sched_getaffinity"):
+        seen = [set(map(int, p.read_text().split(","))) for p in affinity.iterdir()]
+        assert len(seen) >= 2  # a pool per phase, two workers each
+        pins = _worker_cores(2)
+        if pins:  # one core each, both cores used
+            assert all(len(s) == 1 and s <= set(pins) for s in seen) and set().union(*seen) == set(pins)
+        else:  # fewer cores than workers: nothing pinned
+            assert all(s == os.sched_getaffinity(0) for s in seen)
+        assert _worker_cores(1) == [] and _worker_cores(len(os.sched_getaffinity(0)) + 1) == []
     names = sorted(p.name for p in (tmp_path / "parallel").iterdir())
     assert sorted(p.name for p in (tmp_path / "serial").iterdir()) == names
     calls.clear()
