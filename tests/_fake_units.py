@@ -25,9 +25,11 @@ def install():
     import redman_jax._pipeline as pipe
 
     folder = os.environ.get("REDMAN_TEST_AFFINITY_DIR")
-    if folder and hasattr(os, "sched_getaffinity"):
+    if folder and hasattr(os, "sched_getaffinity"):  # one line per thread of this process
+        tids = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]
+        lines = [",".join(str(c) for c in sorted(os.sched_getaffinity(int(t)))) for t in tids]
         with open(os.path.join(folder, f"{os.getpid()}.txt"), "w") as f:
-            f.write(",".join(str(c) for c in sorted(os.sched_getaffinity(0))))
+            f.write("\n".join(lines))
 
     pipe.build_case = build_case
     pipe.run_controller = run_controller

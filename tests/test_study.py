@@ -160,13 +160,16 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     run_sweep(cfg, _worker_init=_fake_units.install)
     assert load_runs(tmp_path / "parallel") == load_runs(tmp_path / "serial")
     if hasattr(os, "sched_getaffinity"):
-        seen = [set(map(int, p.read_text().split(","))) for p in affinity.iterdir()]
+        seen = [[set(map(int, line.split(","))) for line in p.read_text().splitlines()]
+                for p in affinity.iterdir()]  # per worker, per thread
         assert len(seen) >= 2  # a pool per phase, two workers each
         pins = _worker_cores(2)
-        if pins:  # one core each, both cores used
-            assert all(len(s) == 1 and s <= set(pins) for s in seen) and set().union(*seen) == set(pins)
+        if pins:  # every thread of a worker on the worker's one core; both cores used
+            assert all(len(w[0]) == 1 and w[0] <= set(pins) and all(t == w[0] for t in w) for w in seen)
+            assert set().union(*(w[0] for w in seen)) == set(pins)
+            seen = [w[0] for w in seen]
         else:  # fewer cores than workers: nothing pinned
-            assert all(s == os.sched_getaffinity(0) for s in seen)
+            assert all(t == os.sched_getaffinity(0) for w in seen for t in w)
         assert _worker_cores(1) == [] and _worker_cores(len(os.sched_getaffinity(0)) + 1) == []
     names = sorted(p.name for p in (tmp_path / "parallel").iterdir())
     assert sorted(p.name for p in (tmp_path / "serial").iterdir()) == names

@@ -311,7 +311,11 @@ def _worker_start(cores, init) -> None:
 
     if cores is not None:
         try:
-            os.sched_setaffinity(0, {cores.get_nowait()})
+            core = {cores.get_nowait()}
+            # every thread of the process (the call pins only the calling one; threads started
+            # later inherit the affinity of the thread that starts them)
+            for tid in os.listdir("/proc/self/task"):
+                os.sched_setaffinity(int(tid), core)
         except (queue_mod.Empty, AttributeError, OSError):
             pass
     if init is not None:
