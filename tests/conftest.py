@@ -14,6 +14,24 @@ import pytest  # noqa: E402
 import redman_jax  # noqa: E402,F401  (enables x64)
 
 
+def _pin_xdist_worker():
+    """Under pytest-xdist (``make test`` runs ``-n 2``) each worker process runs on a core of its
+    own, as the study's workers do: two unpinned XLA processes contend for both cores
+    (:func:`redman_jax._study._worker_start`)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if not worker.startswith("gw") or count < 2:
+        return
+    from redman_jax._study import _pin_threads, _worker_cores
+
+    cores = _worker_cores(count)
+    if cores:
+        _pin_threads(cores[int(worker[2:]) % len(cores)])
+
+
+_pin_xdist_worker()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

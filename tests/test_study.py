@@ -180,6 +180,22 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
         SweepConfig(jobs=0)
 
 
+def test_xdist_workers_run_on_a_core_of_their_own():
+    """Under ``pytest -n 2`` (``make test``) conftest pins each worker's threads to one core."""
+    from redman_jax._study import _worker_cores
+
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if not os.environ.get("PYTEST_XDIST_WORKER") or count < 2 or not _worker_cores(count):
+        pytest.skip("not an xdist worker on a machine with a core per worker")
+    sets = []
+    for t in os.listdir("/proc/self/task"):
+        try:
+            sets.append(frozenset(os.sched_getaffinity(int(t))))
+        except ProcessLookupError:  # the thread ended meanwhile
+            pass
+    assert len(set(sets)) == 1 and len(sets[0]) == 1
+
+
 SHARD_SCRIPT = textwrap.dedent(
     """
     import sys, numpy as np, jax, jax.numpy as jnp

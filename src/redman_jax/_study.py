@@ -295,28 +295,42 @@ def _worker_cores(jobs: int) -> list[int]:
     return cores[:jobs] if jobs > 1 and len(cores) >= jobs else []
 
 
+def _pin_threads(core: int) -> bool:
+    """Pin every thread of this process to CPU ``core`` (``os.sched_setaffinity(0, ...)`` pins only
+    the calling thread; threads started later inherit the affinity of the thread that starts them).
+    False where the platform cannot (no ``sched_setaffinity`` or no ``/proc/self/task``)."""
+    import os
+
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return False
+    for tid in tids:
+        try:
+            os.sched_setaffinity(int(tid), {core})
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+        except (AttributeError, OSError):
+            return False
+    return True
+
+
 def _worker_start(cores, init) -> None:
     """Worker initializer: pin this process to a core of its own (taken from the queue ``cores``),
     then run ``init``.
 
     Why: each process's XLA CPU runtime keeps a thread pool as wide as the machine (it runs
     independent operations of a program at once), and two unpinned workers contend for both cores.
-    Measured (2-core CPU, two workers at
-    once, the 8-DOF warehouse velocity and acceleration simulations of 20 seeds, repeated in both
-    orders): warm 37.7 and 35.3 s unpinned against 25.0 and 27.7 s pinned, cold (compilation
-    included) 80-86 s against 46-50 s. Alone, unpinned is faster (19.7 against 25.0 s), so a single
-    process is never pinned."""
-    import os
+    Measured (2-core CPU, two processes at once, each pinned with ``taskset``: the 8-DOF warehouse
+    velocity and acceleration simulations of 20 seeds, repeated in both orders): warm 37.7 and
+    35.3 s unpinned against 25.0 and 27.7 s pinned, cold (compilation included) 80-86 s against
+    46-50 s. Alone, unpinned is faster (19.7 against 25.0 s), so a single process is never pinned."""
     import queue as queue_mod
 
     if cores is not None:
         try:
-            core = {cores.get_nowait()}
-            # every thread of the process (the call pins only the calling one; threads started
-            # later inherit the affinity of the thread that starts them)
-            for tid in os.listdir("/proc/self/task"):
-                os.sched_setaffinity(int(tid), core)
-        except (queue_mod.Empty, AttributeError, OSError):
+            _pin_threads(cores.get_nowait())
+        except queue_mod.Empty:
             pass
     if init is not None:
         init()
