@@ -26,7 +26,9 @@ def _pin_xdist_worker():
 
     cores = _worker_cores(count)
     if cores:
-        _pin_threads(cores[int(worker[2:]) % len(cores)])
+        core = cores[int(worker[2:]) % len(cores)]
+        if _pin_threads(core):
+            os.environ["REDMAN_TEST_PINNED_CORE"] = str(core)  # for the test that checks it
 
 
 _pin_xdist_worker()

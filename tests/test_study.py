@@ -157,19 +157,30 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     affinity.mkdir()
     monkeypatch.setenv("REDMAN_TEST_AFFINITY_DIR", str(affinity))
     cfg = dataclasses.replace(_config(tmp_path / "parallel"), jobs=2)
-    run_sweep(cfg, _worker_init=_fake_units.install)
+    # under `make test` this process is an xdist worker pinned to one core (conftest); the sweep's
+    # workers inherit the affinity of this thread, so let it have every core while they start
+    own = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    try:
+        if own is not None:
+            try:
+                os.sched_setaffinity(0, range(os.cpu_count() or 1))
+            except OSError:
+                pass
+        pins, allowed = _worker_cores(2), (os.sched_getaffinity(0) if own is not None else None)
+        run_sweep(cfg, _worker_init=_fake_units.install)
+    finally:
+        if own is not None:
+            os.sched_setaffinity(0, own)
     assert load_runs(tmp_path / "parallel") == load_runs(tmp_path / "serial")
     if hasattr(os, "sched_getaffinity"):
         seen = [[set(map(int, line.split(","))) for line in p.read_text().splitlines()]
                 for p in affinity.iterdir()]  # per worker, per thread
         assert len(seen) >= 2  # a pool per phase, two workers each
-        pins = _worker_cores(2)
         if pins:  # every thread of a worker on the worker's one core; both cores used
             assert all(len(w[0]) == 1 and w[0] <= set(pins) and all(t == w[0] for t in w) for w in seen)
             assert set().union(*(w[0] for w in seen)) == set(pins)
-            seen = [w[0] for w in seen]
         else:  # fewer cores than workers: nothing pinned
-            assert all(t == os.sched_getaffinity(0) for w in seen for t in w)
+            assert all(t == allowed for w in seen for t in w)
         assert _worker_cores(1) == [] and _worker_cores(len(os.sched_getaffinity(0)) + 1) == []
     names = sorted(p.name for p in (tmp_path / "parallel").iterdir())
     assert sorted(p.name for p in (tmp_path / "serial").iterdir()) == names
@@ -182,10 +193,8 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
 
 def test_xdist_workers_run_on_a_core_of_their_own():
     """Under ``pytest -n 2`` (``make test``) conftest pins each worker's threads to one core."""
-    from redman_jax._study import _worker_cores
-
-    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
-    if not os.environ.get("PYTEST_XDIST_WORKER") or count < 2 or not _worker_cores(count):
+    core = os.environ.get("REDMAN_TEST_PINNED_CORE")
+    if core is None:
         pytest.skip("not an xdist worker on a machine with a core per worker")
     sets = []
     for t in os.listdir("/proc/self/task"):
@@ -193,7 +202,7 @@ def test_xdist_workers_run_on_a_core_of_their_own():
             sets.append(frozenset(os.sched_getaffinity(int(t))))
         except ProcessLookupError:  # the thread ended meanwhile
             pass
-    assert len(set(sets)) == 1 and len(sets[0]) == 1
+    assert set(sets) == {frozenset({int(core)})}
 
 
 SHARD_SCRIPT = textwrap.dedent(
