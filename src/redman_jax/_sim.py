@@ -795,8 +795,7 @@ def _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est
 
 def _simulate_core(arm, scenario, controller, gains, jref, q0, qd0, params) -> SimResult:
     if scenario.obstacles.used is None:  # a single run (the batch sets it over all members)
-        scenario = eqx.tree_at(lambda s: s.obstacles, scenario,
-                               with_used(scenario.obstacles, used_bound(scenario.obstacles)))
+        scenario = _with_used_bound(scenario, used_bound(scenario.obstacles))
     if controller.uses_guidance:
         return _simulate_guided(arm, scenario, controller, gains, q0, qd0, params)
     return _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params)
@@ -855,6 +854,12 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
 
 
+def _with_used_bound(scenario, used):
+    """``scenario`` with ``used`` as its bound on the used obstacle slots (:func:`used_bound`; in a
+    batch the bound over all members, see :func:`_simulate_batch_jit`)."""
+    return eqx.tree_at(lambda sc: sc.obstacles, scenario, with_used(scenario.obstacles, used))
+
+
 @eqx.filter_jit
 def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params, gains_axis, q0_axis):
     # one bound on the used obstacle slots for the whole batch: unbatched, so the slot passes skip
@@ -862,8 +867,7 @@ def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params
     used = used_bound(scenarios.obstacles)
 
     def one(s, g, j, q, qd):
-        s = eqx.tree_at(lambda sc: sc.obstacles, s, with_used(s.obstacles, used))
-        return _simulate_core(arm, s, controller, g, j, q, qd, params)
+        return _simulate_core(arm, _with_used_bound(s, used), controller, g, j, q, qd, params)
 
     in_axes = (0, gains_axis, None if jref is None else 0, q0_axis, q0_axis)
     return jax.vmap(one, in_axes=in_axes)(scenarios, gains, jref, q0, qd0)
@@ -889,7 +893,7 @@ _RENT_ITERS = 2048
 
 
 def _guided_member(arm, s, controller, g, q0, qd0, params, used):
-    s = eqx.tree_at(lambda sc: sc.obstacles, s, with_used(s.obstacles, used))
+    s = _with_used_bound(s, used)
     dtype, N, ts, fparams, env0, y0 = _guided_setup(arm, s, controller, g, q0, qd0, params)
     return s, y0, N, ts, _guided_stepper_fns(arm, controller, g, s, env0, fparams, params, N, ts)
 
