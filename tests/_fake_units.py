@@ -26,8 +26,9 @@ def install():
 
     folder = os.environ.get("REDMAN_TEST_AFFINITY_DIR")
     if folder and hasattr(os, "sched_getaffinity"):  # one line per thread of this process
-        tids = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]
-        lines = [",".join(str(c) for c in sorted(os.sched_getaffinity(int(t)))) for t in tids]
+        from redman_jax._study import _thread_affinities
+
+        lines = [",".join(str(c) for c in sorted(cores)) for cores in _thread_affinities()]
         with open(os.path.join(folder, f"{os.getpid()}.txt"), "w") as f:
             f.write("\n".join(lines))
 

@@ -315,6 +315,20 @@ def _pin_threads(core: int) -> bool:
     return True
 
 
+def _thread_affinities() -> list[set[int]]:
+    """The cores each thread of this process may run on (threads that end meanwhile are left out;
+    Linux: ``/proc/self/task``)."""
+    import os
+
+    out = []
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            out.append(set(os.sched_getaffinity(int(tid))))
+        except ProcessLookupError:
+            continue
+    return out
+
+
 def _worker_start(cores, init) -> None:
     """Worker initializer: pin this process to a core of its own (taken from the queue ``cores``),
     then run ``init``.
