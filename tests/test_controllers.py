@@ -265,13 +265,20 @@ def _rollout_loss(ctrl, obs, n_steps=4, dt=0.005):
             out = ctrl(gains, ARM, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=_unpack(z)), ref, env)
             return qd, rj.forward_dynamics(ARM, q, qd, out.tau, limits=False), _pack(out.dz)
 
+        add = lambda y, k, c: jax.tree.map(lambda a, b: a + c * b, y, k)
+        c_stage = jnp.array([0.0, 0.5, 0.5, 1.0]) * dt  # classic RK4: k_i = f(y + c_i k_{i-1})
+        b_stage = jnp.array([1.0, 2.0, 2.0, 1.0]) * (dt / 6)
+
         def step(y, _):
-            add = lambda y, k, c: jax.tree.map(lambda a, b: a + c * b, y, k)
-            k1 = f(y)
-            k2 = f(add(y, k1, dt / 2))
-            k3 = f(add(y, k2, dt / 2))
-            k4 = f(add(y, k3, dt))
-            y = jax.tree.map(lambda a, b, c, d, e: a + dt / 6 * (b + 2 * c + 2 * d + e), y, k1, k2, k3, k4)
+            # the four stages as one scan, so the controller is traced (and differentiated) once,
+            # not four times: the reverse-mode program compiles about 4x faster
+            def stage(carry, cb):
+                k, acc = carry
+                k = f(add(y, k, cb[0]))
+                return (k, add(acc, k, cb[1])), None
+
+            zeros = jax.tree.map(jnp.zeros_like, y)
+            (_, y), _ = jax.lax.scan(stage, (zeros, y), jnp.stack([c_stage, b_stage], axis=1))
             p, quat = rj.end_effector_pose(ARM, y[0])
             return y, jnp.sum((p - ref.p) ** 2) + jnp.sum(quat_error(Qd, quat) ** 2) + 1e-3 * jnp.sum(y[1] ** 2)
 
