@@ -116,9 +116,9 @@ def test_stopping_at_the_stop_rule_changes_nothing_reported(horizon):
 
 
 def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon, monkeypatch):
-    """The batch is stepped from the host and its last member(s) still stepping move to a smaller
-    batch (forced here after 16 iterations with at most 2 left; by default a quarter of the batch
-    after 2048): each member takes the steps of its single run and equals it to rounding
+    """The batch is stepped from the host and its last member(s) still stepping move to a batch of
+    just those (forced here after 16 iterations with at most half left; by default a quarter of the
+    batch after 2048): each member takes the steps of its single run and equals it to rounding
     (separately compiled programs: about 3e-12 relative), a NaN member is flagged and isolated, and
     the switch is deterministic."""
     import redman_jax._sim as sim
@@ -130,11 +130,13 @@ def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon, monkeypatc
     orig = sim._simulate_guided_compacting
     monkeypatch.setattr(sim, "_simulate_guided_compacting", lambda *a, **k: orig(*a, stats=stats))
     scs = [SCEN, guided_scenario((0.1, -0.3, 0.0), seed=1), guided_scenario((-0.2, 0.2, 0.1), seed=2)]
-    bad = list(scs)
-    bad[1] = eqx.tree_at(lambda s: s.goal_p, bad[1], bad[1].goal_p.at[0].set(jnp.nan))
+    nan_goal = lambda s: eqx.tree_at(lambda s: s.goal_p, s, s.goal_p.at[0].set(jnp.nan))
+    bad = [scs[0], nan_goal(scs[1]), scs[2], nan_goal(scs[2]), nan_goal(scs[0])]
     batch = simulate_batch(ARM, stack_scenarios(bad), CTRL, GAINS, params=PARAMS)
-    assert stats["compacted"] >= 1 and stats["small"] == 2, stats
-    assert bool(batch.diverged[1]) and not bool(batch.metrics.success[1])
+    assert stats["small"] == 3, stats
+    # the two members still stepping move on alone (the NaN ones stop at once): 2 rows, not 3
+    assert stats["compacted"] == 2 and stats["sub_batch"] == 2, stats
+    assert all(bool(batch.diverged[i]) and not bool(batch.metrics.success[i]) for i in (1, 3, 4))
     assert not bool(batch.diverged[0]) and not bool(batch.diverged[2])
     np.testing.assert_allclose(np.asarray(batch.q[0]), np.asarray(horizon.q), rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(batch.qd[0]), np.asarray(horizon.qd), rtol=1e-10, atol=1e-12)

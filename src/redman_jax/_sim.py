@@ -118,7 +118,7 @@ class SimParams(eqx.Module):
       1.6x cheaper at batch 20); ``stop_early``: a gradient-guided member stops stepping at the stop
       rule (horizon mode; the results are the same, see :func:`_solve_guided_stepper`);
       ``compact``: :func:`simulate_batch` of a gradient-guided controller in horizon mode moves the
-      last quarter of its members still stepping to a smaller batch (host-driven, outside any
+      last quarter of its members still stepping to a batch of just those (host-driven, outside any
       ``jit``; the same steps and results to rounding, see ``_simulate_guided_compacting``).
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
@@ -881,7 +881,10 @@ def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params
 # 9,727). The host advances the batch ``_CHECK_ITERS`` loop iterations per call; once at most
 # ``ceil(R / _COMPACT_FRACTION)`` members are still stepping and have stepped ``_RENT_ITERS`` more
 # iterations at full size (about what compiling the smaller program costs: ski rental), they move to
-# a batch of that size. The switch depends on step counts only, never on wall time, so the same
+# a batch of exactly those members (no padding rows: a member costs about as much as a row of the
+# vmapped loop, 8-DOF warehouse 0.63 / 1.19 / 2.12 ms per iteration at 1 / 2 / 5 rows, so 2
+# stragglers padded to 5 rows ran 1.8x slower). The switch depends on step counts only, never on
+# wall time, so the same
 # inputs give the same results. The members take the same steps as in one ``vmap`` over the whole
 # batch and agree with it to rounding (separately compiled programs: 3e-12 relative in
 # tests/test_sim_guided.py). A member that chatters through its step budget can amplify that: the
@@ -945,7 +948,7 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
     small = -(-R // _COMPACT_FRACTION)
     max_steps = params.max_steps_per_sample * params.guidance_samples
     carry, active = _compact_init(*args)
-    done, few_since, compacted, calls = 0, None, 0, 0
+    done, few_since, compacted, calls, sub_rows = 0, None, 0, 0, None
     while True:
         act = np.asarray(active)
         n_act = int(act.sum())
@@ -954,28 +957,28 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
         if R > small and n_act <= small:
             few_since = done if few_since is None else few_since
             if done - few_since >= _RENT_ITERS:
-                idx = np.flatnonzero(act)
-                pidx = np.concatenate([idx, np.full(small - idx.size, idx[-1])])
-                sub = (arm, _take_rows(scenarios, pidx), controller,
-                       _take_rows(gains, pidx, gains_axis == 0), _take_rows(q0, pidx, q0_axis == 0),
-                       _take_rows(qd0, pidx, q0_axis == 0), params, used, axes)
-                sub_carry, _ = _compact_advance(*sub, _take_rows(carry, pidx),
+                idx = np.flatnonzero(act)  # the members still stepping, and only those
+                sub = (arm, _take_rows(scenarios, idx), controller,
+                       _take_rows(gains, idx, gains_axis == 0), _take_rows(q0, idx, q0_axis == 0),
+                       _take_rows(qd0, idx, q0_axis == 0), params, used, axes)
+                sub_carry, _ = _compact_advance(*sub, _take_rows(carry, idx),
                                                 jnp.asarray(max_steps, jnp.int32))
 
                 def put(full, part):
                     full = np.array(full)
-                    full[idx] = np.asarray(part)[: idx.size]
+                    full[idx] = np.asarray(part)
                     return jnp.asarray(full)
 
                 carry = jax.tree.map(put, carry, sub_carry)
                 compacted = idx.size
+                sub_rows = int(sub_carry["k"].shape[0])
                 break
         done = min(done + _CHECK_ITERS, max_steps)
         carry, active = _compact_advance(*args, carry, jnp.asarray(done, jnp.int32))
         calls += 1
     if stats is not None:
         stats.update(full_batch_calls=calls, compacted=compacted, compacted_at=done if compacted else None,
-                     batch=R, small=small)
+                     batch=R, small=small, sub_batch=sub_rows)
     return _compact_finish(*args, carry)
 
 
