@@ -12,6 +12,7 @@ import pytest
 import redman_jax as rj
 from redman_jax._fields import obstacle_field_gradient, obstacle_field_potential
 from redman_jax._nullspace import (
+    _obstacle_gradient_planes,
     PolicyGains,
     damped_pinv,
     damping_factor,
@@ -285,6 +286,45 @@ def test_fused_obstacle_gradients_match_fields(arm9, rng):
         x = X[i]
         np.testing.assert_allclose(np.asarray(obstacle_field_gradient(obs, x, 0.05, 0.75)), b[i],
                                    rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("form", ["minus", "plus"])
+def test_obstacle_gradient_tangent_is_the_field_hessian(form, rng):
+    """The analytic forward derivative of the fused pass along the points (``_slot_tangent``,
+    what the original velocity OSC's exact ``qdd_r`` runs through) equals ``Hess V_o v`` from the
+    reference formulation (``jax.jacfwd`` of ``_fields.obstacle_field_gradient``, per-slot
+    autodiff normals): at random points, inside each family (where a cylinder's mantle keeps its
+    curvature term and a box's does not) and with padded slots. Points within 2 mm of a surface
+    are left out: there the clamp (1e-3 m) makes both sides cancel terms of 1e15 and agree only to
+    that scale. Also: the primal is unchanged, and reverse mode (the transpose of the rule) equals
+    reverse mode through the reference formulation."""
+    obs = _mixed_obstacles()
+    X = np.concatenate([
+        rng.uniform([-0.7, -0.7, 0.2], [0.7, 0.7, 1.5], (300, 3)),
+        [[0.37, 0.02, 0.93], [-0.29, 0.31, 1.19]],  # inside the spheres
+        [[0.02, 0.37, 0.75], [-0.38, -0.22, 0.52]],  # inside the boxes
+        np.array([0.3, -0.35, 1.1]) + np.array([[0.0, 0.02, 0.01], [0.015, 0.0, -0.08]]),  # cylinder
+    ])
+    dmin = np.asarray(jax.vmap(lambda x: jnp.min(jnp.abs(rj.obstacle_distances(obs, x))))(X))
+    X = X[dmin > 2e-3]
+    assert X.shape[0] > 250
+    V = rng.normal(size=X.shape)
+    planes = lambda P: tuple(P[:, j] for j in range(3))
+    fused = jax.jit(lambda X, V: jax.jvp(
+        lambda *x: _obstacle_gradient_planes(obs, x, 0.05, 0.75, form), planes(X), planes(V)))
+    (g, t) = (np.stack(z, axis=1) for z in fused(jnp.asarray(X), jnp.asarray(V)))
+    H = jax.jit(jax.vmap(jax.jacfwd(lambda x: obstacle_field_gradient(obs, x, 0.05, 0.75, form=form))))(X)
+    t_ref = np.einsum("mij,mj->mi", np.asarray(H), V)
+    scale = np.linalg.norm(t_ref, axis=1, keepdims=True) + 1e-6
+    np.testing.assert_array_less(np.abs(t - t_ref) / scale, 1e-9)
+    assert np.all(np.linalg.norm(t_ref[-4:], axis=1) > 1.0)  # the interior points are covered
+    g_ref = np.asarray(obstacle_gradients(obs, jnp.asarray(X), 0.05, 0.75, form, impl="reference"))
+    np.testing.assert_allclose(g, g_ref, rtol=1e-10, atol=1e-12)
+    W = rng.normal(size=X.shape)
+    vjp_new = jax.grad(lambda P: jnp.sum(jnp.stack(_obstacle_gradient_planes(obs, planes(P), 0.05, 0.75, form), 1) * W))
+    vjp_ref = jax.grad(lambda P: jnp.sum(obstacle_gradients(obs, P, 0.05, 0.75, form, impl="reference") * W))
+    a, b = np.asarray(vjp_new(jnp.asarray(X))), np.asarray(vjp_ref(jnp.asarray(X)))
+    np.testing.assert_array_less(np.abs(a - b) / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-6), 1e-9)
 
 
 def test_obstacle_policy_is_potential_descent(arm9, rng):

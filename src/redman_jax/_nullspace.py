@@ -46,6 +46,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._math import as_float
 from jaxtyping import Array, Bool, Float
@@ -487,31 +488,153 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
     return tuple(R[j, 0] * gl[0] + R[j, 1] * gl[1] + R[j, 2] * gl[2] for j in range(3))
 
 
-def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e-3) -> tuple:
-    """``sum_o grad V_o`` at the points ``X = (x, y, z)`` (three ``(m,)`` planes), as three planes.
+def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
+    """The directional derivative of :func:`_slot_gradient` along point velocities ``V`` (three
+    ``(m,)`` planes): ``d/dt grad V_o(x) = Hess V_o(x) xdot``, analytic.
 
-    One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators,
-    ``obs.slots_per_step`` slots per step, steps past ``obs.used`` skipped
-    (:class:`~redman_jax._obstacles.ObstacleSet`, :func:`~redman_jax._obstacles.fold_slots`)."""
-    from ._fields import _check_form
+    With ``n`` the (unclamped) sdf gradient, ``c = V_o' / rho`` the magnitude over the distance
+    ``rho`` that ``n`` is normalised by and ``V_o''`` the slope of ``V_o'(max(sdf, clamp))`` (zero
+    at or below the clamp, beyond ``D`` and on masked slots): ``d/dt (c u) = (V_o'' - c)(u . v) /
+    rho^2 u + c du/dt`` for the unnormalised direction ``u`` (sphere: ``x - p``; box outside: the
+    outward offset ``o`` with its signs; cylinder outside: ``(o_1 e_rho, o_2 s_z)``), whose
+    derivative is ``v`` on its active components (plus ``o_1 de_rho/dt`` on a cylinder). Inside a
+    box the normal is constant and the magnitude clamped: zero; inside a cylinder's mantle the
+    curvature ``V_o' de_rho/dt`` remains (SPEC U3). One division per point and slot, as in
+    :func:`_slot_gradient`. Equal to the forward-mode derivative of :func:`_slot_gradient` to
+    rounding (tested).
+    """
+    sgn = -1.0 if form == "minus" else 1.0
+    d = tuple(X[j] - p[j] for j in range(3))
+
+    def coefs(sdf, rho):
+        """``(c, (V'' - c) / rho^2)`` from one quotient ``1 / (r^5 rho^3)``."""
+        r = jnp.where(sdf > clamp, sdf, clamp)
+        gate = mask & (sdf <= D)
+        num = jnp.where(gate, (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
+        slope5 = jnp.where(gate & (sdf > clamp), (-a / D) * (2.0 * sgn) * r - 4.0 * num, 0.0)  # r^5 V''
+        r2 = r * r
+        rho2 = rho * rho
+        quot = 1.0 / jnp.where(rho > 0, r2 * r2 * r * rho2 * rho, 1.0)
+        return num * r * rho2 * quot, (slope5 * rho - num * r) * quot
+
+    if kind == "spheres":
+        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        pos = r2 > 0
+        rho = jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
+        c, k = coefs(rho - dims[0], rho)
+        alpha = jnp.where(pos, k * (d[0] * V[0] + d[1] * V[1] + d[2] * V[2]), 0.0)
+        c = jnp.where(pos, c, 0.0)
+        return tuple(alpha * d[j] + c * V[j] for j in range(3))
+    xl = tuple(R[0, i] * d[0] + R[1, i] * d[1] + R[2, i] * d[2] for i in range(3))  # R^T (x - p)
+    vl = tuple(R[0, i] * V[0] + R[1, i] * V[1] + R[2, i] * V[2] for i in range(3))  # R^T v
+    if kind == "boxes":
+        u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
+        o = [jnp.where(v > 0, v, 0.0) for v in u]
+        so = [jnp.where(xl[i] < 0, -o[i], o[i]) for i in range(3)]  # signed offsets
+        on2 = o[0] * o[0] + o[1] * o[1] + o[2] * o[2]
+        out = on2 > 0
+        on = jnp.where(out, jnp.sqrt(jnp.where(out, on2, 1.0)), 0.0)
+        c, k = coefs(on, on)
+        alpha = jnp.where(out, k * (so[0] * vl[0] + so[1] * vl[1] + so[2] * vl[2]), 0.0)
+        c = jnp.where(out, c, 0.0)  # inside: constant normal, clamped magnitude
+        tl = tuple(alpha * so[i] + jnp.where(u[i] > 0, c * vl[i], 0.0) for i in range(3))
+    elif kind == "cylinders":
+        rho2 = xl[0] * xl[0] + xl[1] * xl[1]
+        rpos = rho2 > 0
+        rho = jnp.where(rpos, jnp.sqrt(jnp.where(rpos, rho2, 1.0)), 0.0)
+        irho = 1.0 / jnp.where(rpos, rho, 1.0)
+        e = (xl[0] * irho, xl[1] * irho)
+        rdot = e[0] * vl[0] + e[1] * vl[1]
+        de = ((vl[0] - rdot * e[0]) * irho, (vl[1] - rdot * e[1]) * irho)  # de_rho/dt
+        d1 = rho - dims[0]
+        d2 = jnp.abs(xl[2]) - dims[1]
+        o1, o2 = jnp.where(d1 > 0, d1, 0.0), jnp.where(d2 > 0, d2, 0.0)
+        so2 = jnp.where(xl[2] < 0, -o2, o2)
+        on2 = o1 * o1 + o2 * o2
+        out = on2 > 0
+        on = jnp.where(out, jnp.sqrt(jnp.where(out, on2, 1.0)), 0.0)
+        dmax = _select_max(d1, d2)
+        sdf = jnp.where(out, on, jnp.where(dmax < 0, dmax, 0.0))
+        c, k = coefs(sdf, jnp.where(out, on, 1.0))  # inside: c = V'(clamp) (rho := 1)
+        alpha = jnp.where(out, k * (o1 * rdot + so2 * vl[2]), 0.0)
+        radial = jnp.where(out, o1, (d1 >= d2).astype(c.dtype))  # g_xy = c * radial * e_rho
+        cr = jnp.where(rpos, c * radial, 0.0)
+        w_e = jnp.where(rpos & out, alpha * o1 + jnp.where(d1 > 0, c * rdot, 0.0), 0.0)
+        tl = (w_e * e[0] + cr * de[0], w_e * e[1] + cr * de[1],
+              jnp.where(out, alpha * so2 + jnp.where(d2 > 0, c * vl[2], 0.0), 0.0))
+    else:  # pragma: no cover
+        raise ValueError(kind)
+    return tuple(R[j, 0] * tl[0] + R[j, 1] * tl[1] + R[j, 2] * tl[2] for j in range(3))
+
+
+def _fold_families(obs, init, slot_fn):
+    """``sum`` over every active slot of every family of ``slot_fn(kind, *slot)`` (a tuple of
+    ``(m,)`` planes), one :func:`~redman_jax._obstacles.fold_slots` per family."""
     from ._obstacles import fold_slots
 
-    _check_form(form)
-    g = tuple(jnp.zeros_like(X[0]) for _ in range(3))
+    acc = init
     for i, kind in enumerate(("spheres", "boxes", "cylinders")):
         if getattr(obs, kind).capacity == 0:
             continue
 
         def step(acc, slot, c, kind=kind):
             if c == 1:
-                gs = _slot_gradient(kind, *slot, X, a, D, form, clamp)
+                gs = slot_fn(kind, *slot)
             else:  # c slots at once, (c, m) planes summed over the slots
-                gs = jax.vmap(lambda *sl: _slot_gradient(kind, *sl, X, a, D, form, clamp))(*slot)
+                gs = jax.vmap(lambda *sl: slot_fn(kind, *sl))(*slot)
                 gs = tuple(jnp.sum(x, axis=0) for x in gs)
             return tuple(x + y for x, y in zip(acc, gs))
 
-        g = fold_slots(obs, i, g, step)
-    return g
+        acc = fold_slots(obs, i, acc, step)
+    return acc
+
+
+def _gradient_planes(obs, X: tuple, a, D, clamp, form: str) -> tuple:
+    return _fold_families(obs, tuple(jnp.zeros_like(X[0]) for _ in range(3)),
+                          lambda kind, *sl: _slot_gradient(kind, *sl, X, a, D, form, clamp))
+
+
+_gradient_planes_fwd = jax.custom_jvp(_gradient_planes, nondiff_argnums=(5,))
+
+
+def _gradient_planes_jvp(form, primals, tangents):
+    """Along the points only (the obstacles, ``a``, ``D`` and ``clamp`` held): the primal planes
+    and the analytic tangent planes (:func:`_slot_tangent`) in one fold over the slots, about half
+    the cost of forward-mode through :func:`_slot_gradient`. Any other non-zero tangent: plain
+    forward mode."""
+    from jax.custom_derivatives import SymbolicZero
+
+    obs, X, a, D, clamp = primals
+    t_obs, t_X, t_a, t_D, t_clamp = tangents
+    is_zero = lambda t: isinstance(t, SymbolicZero)
+    held = jax.tree.leaves((t_obs, t_a, t_D, t_clamp), is_leaf=is_zero)
+    if not all(is_zero(t) for t in held) or all(is_zero(t) for t in t_X):
+        dense = jax.tree.map(lambda t: np.zeros(t.shape, t.dtype) if is_zero(t) else t, tangents,
+                             is_leaf=is_zero)  # (np: integer leaves have float0 tangents)
+        return jax.jvp(lambda *args: _gradient_planes(*args, form), primals, dense)
+    V = tuple(jnp.zeros(t.shape, t.dtype) if is_zero(t) else t for t in t_X)
+    zeros = tuple(jnp.zeros_like(X[0]) for _ in range(6))
+    both = _fold_families(obs, zeros, lambda kind, *sl: (
+        _slot_gradient(kind, *sl, X, a, D, form, clamp) + _slot_tangent(kind, *sl, X, V, a, D, form, clamp)))
+    return both[:3], both[3:]
+
+
+_gradient_planes_fwd.defjvp(_gradient_planes_jvp, symbolic_zeros=True)
+
+
+def _obstacle_gradient_planes(obs, X: tuple, a, D, form: str = "minus", clamp=1e-3) -> tuple:
+    """``sum_o grad V_o`` at the points ``X = (x, y, z)`` (three ``(m,)`` planes), as three planes.
+
+    One ``lax.scan`` per shape family over its slots, three ``(m,)`` accumulators,
+    ``obs.slots_per_step`` slots per step, steps past ``obs.used`` skipped
+    (:class:`~redman_jax._obstacles.ObstacleSet`, :func:`~redman_jax._obstacles.fold_slots`).
+    Its forward derivative along the points (``Hess V_o xdot``, the velocity-domain policy's time
+    derivative in the original velocity OSC) is analytic (:func:`_slot_tangent`)."""
+    from ._fields import _check_form
+
+    _check_form(form)
+    a, D, clamp = (jnp.asarray(v, X[0].dtype) for v in (a, D, clamp))
+    return _gradient_planes_fwd(obs, tuple(X), a, D, clamp, form)
 
 
 def obstacle_gradients(obs, points: Float[Array, "m 3"], a, D, form: str = "minus", clamp=1e-3,
