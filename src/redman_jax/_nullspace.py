@@ -500,8 +500,9 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
     derivative is ``v`` on its active components (plus ``o_1 de_rho/dt`` on a cylinder). Inside a
     box the normal is constant and the magnitude clamped: zero; inside a cylinder's mantle the
     curvature ``V_o' de_rho/dt`` remains (SPEC U3). One division per point and slot, as in
-    :func:`_slot_gradient`. Equal to the forward-mode derivative of :func:`_slot_gradient` to
-    rounding (tested).
+    :func:`_slot_gradient`. Equal to ``H v`` with ``H`` the forward Jacobian of the reference
+    formulation :func:`~redman_jax._fields.obstacle_field_gradient` to rounding, more than 2 mm
+    from any surface (closer, the clamp makes both cancel terms of order 1e15; tested).
     """
     sgn = -1.0 if form == "minus" else 1.0
     d = tuple(X[j] - p[j] for j in range(3))
@@ -599,8 +600,9 @@ _gradient_planes_fwd = jax.custom_jvp(_gradient_planes, nondiff_argnums=(5,))
 
 def _gradient_planes_jvp(form, primals, tangents):
     """Along the points only (the obstacles, ``a``, ``D`` and ``clamp`` held): the primal planes
-    and the analytic tangent planes (:func:`_slot_tangent`) in one fold over the slots, about half
-    the cost of forward-mode through :func:`_slot_gradient`. Any other non-zero tangent: plain
+    and the analytic tangent planes (:func:`_slot_tangent`) in one fold over the slots (9-DOF arm,
+    40 obstacles, batch 1024: the velocity-domain policy's jvp 12.3-13.4 against 17.5-18.0 us per
+    state by forward mode through :func:`_slot_gradient`). Any other non-zero tangent: plain
     forward mode."""
     from jax.custom_derivatives import SymbolicZero
 
