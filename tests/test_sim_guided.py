@@ -130,7 +130,7 @@ def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon, monkeypatc
     orig = sim._simulate_guided_compacting
     monkeypatch.setattr(sim, "_simulate_guided_compacting", lambda *a, **k: orig(*a, stats=stats))
     scs = [SCEN, guided_scenario((0.1, -0.3, 0.0), seed=1), guided_scenario((-0.2, 0.2, 0.1), seed=2)]
-    nan_goal = lambda s: eqx.tree_at(lambda s: s.goal_p, s, s.goal_p.at[0].set(jnp.nan))
+    nan_goal = lambda sc: eqx.tree_at(lambda s: s.goal_p, sc, sc.goal_p.at[0].set(jnp.nan))
     bad = [scs[0], nan_goal(scs[1]), scs[2], nan_goal(scs[2]), nan_goal(scs[0])]
     batch = simulate_batch(ARM, stack_scenarios(bad), CTRL, GAINS, params=PARAMS)
     assert stats["small"] == 3, stats

@@ -885,8 +885,8 @@ def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params
 # vmapped loop, 8-DOF warehouse 0.63 / 1.19 / 2.12 ms per iteration at 1 / 2 / 5 rows, so 2
 # stragglers padded to 5 rows ran 1.8x slower). The switch depends on step counts only, never on
 # wall time, so the same inputs give the same results. The members take the same steps as in one
-# ``vmap`` over the whole batch and agree with it to rounding (separately compiled programs: 3e-12 relative in
-# tests/test_sim_guided.py). A member that chatters through its step budget can amplify that: the
+# ``vmap`` over the whole batch and agree with it to rounding (separately compiled programs: 3e-12
+# relative in tests/test_sim_guided.py). A member that chatters through its step budget can amplify that: the
 # 8-DOF warehouse member above ends 5.6e-14 rad apart at this switch point, 4.6e-4 rad at an
 # earlier one, with the same steps and outcome.
 _COMPACT_FRACTION = 4
