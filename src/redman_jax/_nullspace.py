@@ -419,6 +419,25 @@ def _select_max(x, y):
     return jnp.where(x > y, x, y)
 
 
+def _clamped_numerator(sdf, mask, a, D, form: str, clamp):
+    """``(r, num)`` with ``r = max(sdf, clamp)`` and ``V_o'(r) = num / r^4 = -a (3D -/+ 2r) / (D r^4)``
+    (``num`` zero beyond ``D`` and on masked slots), as compare-and-selects: the one formula of the
+    magnitude that :func:`_slot_gradient` and its tangent :func:`_slot_tangent` share."""
+    sgn = -1.0 if form == "minus" else 1.0
+    r = jnp.where(sdf > clamp, sdf, clamp)
+    return r, jnp.where(mask & (sdf <= D), (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
+
+
+def _to_slot(R, w):
+    """``R^T w`` for three planes ``w`` (world -> slot frame)."""
+    return tuple(R[0, i] * w[0] + R[1, i] * w[1] + R[2, i] * w[2] for i in range(3))
+
+
+def _from_slot(R, w):
+    """``R w`` for three planes ``w`` (slot frame -> world)."""
+    return tuple(R[j, 0] * w[0] + R[j, 1] * w[1] + R[j, 2] * w[2] for j in range(3))
+
+
 def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
     """``grad V_o`` of one obstacle slot at every point, three planes ``(m,)`` (x, y, z).
 
@@ -434,13 +453,11 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
     ``num / (r^4 |n|)`` that the three outputs share; ``max``/``min`` are compare-and-select (see
     :func:`_select_max`). Equal to the reference to rounding (tested).
     """
-    sgn = -1.0 if form == "minus" else 1.0
     d = tuple(X[j] - p[j] for j in range(3))  # world offsets
 
-    def num_r4(sdf):  # V_o'(r) = num / r^4 = -a (3D -/+ 2r) / (D r^4), r = max(sdf, clamp)
-        r = jnp.where(sdf > clamp, sdf, clamp)
+    def num_r4(sdf):  # V_o'(r) = num / r^4, r = max(sdf, clamp)
+        r, num = _clamped_numerator(sdf, mask, a, D, form, clamp)
         r2 = r * r
-        num = jnp.where(mask & (sdf <= D), (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
         return num, jnp.where(r > 0, r2 * r2, 1.0)
 
     if kind == "spheres":
@@ -450,7 +467,7 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
         num, r4 = num_r4(jnp.where(pos, rr, 0.0) - dims[0])
         w = jnp.where(pos, num, 0.0) / (r4 * rr)
         return tuple(w * d[j] for j in range(3))
-    xl = tuple(R[0, i] * d[0] + R[1, i] * d[1] + R[2, i] * d[2] for i in range(3))  # R^T (x - p)
+    xl = _to_slot(R, d)  # R^T (x - p)
     if kind == "boxes":
         u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
         o = [jnp.where(v > 0, v, 0.0) for v in u]
@@ -485,7 +502,7 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
         gl = (w_rad * xl[0], w_rad * xl[1], w_ax)
     else:  # pragma: no cover
         raise ValueError(kind)
-    return tuple(R[j, 0] * gl[0] + R[j, 1] * gl[1] + R[j, 2] * gl[2] for j in range(3))
+    return _from_slot(R, gl)
 
 
 def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
@@ -509,10 +526,9 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
 
     def coefs(sdf, rho):
         """``(c, (V'' - c) / rho^2)`` from one quotient ``1 / (r^5 rho^3)``."""
-        r = jnp.where(sdf > clamp, sdf, clamp)
-        gate = mask & (sdf <= D)
-        num = jnp.where(gate, (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
-        slope5 = jnp.where(gate & (sdf > clamp), (-a / D) * (2.0 * sgn) * r - 4.0 * num, 0.0)  # r^5 V''
+        r, num = _clamped_numerator(sdf, mask, a, D, form, clamp)
+        slope5 = jnp.where(mask & (sdf <= D) & (sdf > clamp),  # r^5 V'' = d(num / r^4)/dr r^5
+                           (-a / D) * (2.0 * sgn) * r - 4.0 * num, 0.0)
         r2 = r * r
         rho2 = rho * rho
         quot = 1.0 / jnp.where(rho > 0, r2 * r2 * r * rho2 * rho, 1.0)
@@ -526,8 +542,8 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
         alpha = jnp.where(pos, k * (d[0] * V[0] + d[1] * V[1] + d[2] * V[2]), 0.0)
         c = jnp.where(pos, c, 0.0)
         return tuple(alpha * d[j] + c * V[j] for j in range(3))
-    xl = tuple(R[0, i] * d[0] + R[1, i] * d[1] + R[2, i] * d[2] for i in range(3))  # R^T (x - p)
-    vl = tuple(R[0, i] * V[0] + R[1, i] * V[1] + R[2, i] * V[2] for i in range(3))  # R^T v
+    xl = _to_slot(R, d)  # R^T (x - p)
+    vl = _to_slot(R, V)  # R^T v
     if kind == "boxes":
         u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
         o = [jnp.where(v > 0, v, 0.0) for v in u]
@@ -565,7 +581,7 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
               jnp.where(out, alpha * so2 + jnp.where(d2 > 0, c * vl[2], 0.0), 0.0))
     else:  # pragma: no cover
         raise ValueError(kind)
-    return tuple(R[j, 0] * tl[0] + R[j, 1] * tl[1] + R[j, 2] * tl[2] for j in range(3))
+    return _from_slot(R, tl)
 
 
 def _fold_families(obs, init, slot_fn):
