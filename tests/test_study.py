@@ -126,6 +126,50 @@ def test_resume_after_interruption_equals_uninterrupted(monkeypatch, tmp_path):
     assert cfg["seeds"] == [1, 2]
 
 
+def test_union_seconds_counts_nested_spans_once():
+    from redman_jax._study import union_seconds
+
+    assert union_seconds([]) == 0.0
+    # an inner trace (2-3) inside an outer one (1-5), a disjoint compile (7-8), touching spans
+    assert union_seconds([(7.0, 8.0), (1.0, 5.0), (2.0, 3.0)]) == pytest.approx(5.0)
+    assert union_seconds([(0.0, 1.0), (1.0, 2.5), (2.0, 3.0)]) == pytest.approx(3.0)
+
+
+def test_timing_table_has_every_unit_and_its_compile_time(monkeypatch, tmp_path):
+    """``DIR/timing.csv`` lists every unit of the sweep with its wall time and the part spent
+    compiling (each fake unit jits a new function, so it compiles); a resumed sweep keeps the
+    records of the units it does not recompute, and the summary adds them up."""
+    import csv
+
+    import jax
+
+    from redman_jax._study import _units, timing_summary
+
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    build, run = pipe.build_case, pipe.run_controller
+    compiling = lambda f: lambda *a, **k: (jax.jit(lambda x: x + 1)(np.float64(len(calls))), f(*a, **k))[1]
+    monkeypatch.setattr(pipe, "build_case", compiling(build))
+    monkeypatch.setattr(pipe, "run_controller", compiling(run))
+    cfg = _config(tmp_path)
+    run_sweep(cfg)
+    rows = list(csv.DictReader(open(tmp_path / "timing.csv")))
+    assert [r["unit"] for r in rows] == [u[4] for ph in _units(cfg) for g in ph.values() for u in g]
+    assert [r["kind"] for r in rows] == ["build", "build", "simulation", "simulation", "simulation"]
+    for r in rows:
+        assert 0 < float(r["compile_s"]) <= float(r["wall_s"]), r
+    first = {r["unit"]: r["wall_s"] for r in rows}
+    os.remove(tmp_path / "units" / f"{rows[-1]['unit']}.pkl")  # one unit lost: recomputed alone
+    calls.clear()
+    run_sweep(cfg)
+    assert len(calls) == 1
+    again = list(csv.DictReader(open(tmp_path / "timing.csv")))
+    assert [r["wall_s"] for r in again[:-1]] == [first[r["unit"]] for r in again[:-1]]
+    total = sum(float(r["wall_s"]) for r in again)
+    assert f"{total:8.1f} s" in timing_summary([dict(r, wall_s=float(r["wall_s"]),
+                                                     compile_s=float(r["compile_s"])) for r in again])
+
+
 def test_changed_configuration_recomputes(monkeypatch, tmp_path):
     calls = []
     _fake_pipeline(monkeypatch, calls)

@@ -8,7 +8,8 @@ turns the results into table rows and per-sample traces. Both return plain dicts
 Timing (thesis 3.5, SPEC section 10): planning and IK are measured as the warm wall time of one
 batched call divided by the number of samples it produced; the controller as the mean of jitted
 single evaluations (``controller_time_per_sample``); the local-minima estimator likewise per
-update. Compile time is measured apart and reported in ``timings``.
+update. These are warm timings; each unit's compile time is measured by the sweep around it
+(``DIR/timing.csv``, :func:`~redman_jax._study.write_timing`).
 """
 
 from __future__ import annotations

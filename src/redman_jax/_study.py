@@ -20,8 +20,10 @@ The results are the same as with one process (each unit is a deterministic funct
 configuration; tested).
 
 At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` hold one row per run, ``DIR/traces/`` the
-per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, and (unless
-``--no-figures``) ``DIR/figures/`` and ``DIR/report.md`` compare the numbers with the thesis.
+per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, ``DIR/timing.csv``
+each unit's wall time and the part of it spent tracing, lowering and compiling (:func:`write_timing`,
+summed on the console), and (unless ``--no-figures``) ``DIR/figures/`` and ``DIR/report.md``
+compare the numbers with the thesis.
 """
 
 from __future__ import annotations
@@ -201,7 +203,65 @@ def _units(cfg: SweepConfig):
     return builds, sims
 
 
+# --------------------------------------------------------------------------------------------
+# where a sweep's time goes: each unit's wall time and the part of it spent compiling
+
+_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
+                   "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                   "/jax/core/compile/backend_compile_duration")
+_compile_spans: list[tuple[float, float]] = []  # (start, end), perf_counter seconds, this process
+_listening = False
+
+
+def _listen_to_compiles() -> None:
+    """Record the span of every trace, lowering and XLA compilation in this process (once)."""
+    global _listening
+    if _listening:
+        return
+    from jax import monitoring
+
+    def on_duration(event, seconds, **kwargs):
+        if event in _COMPILE_EVENTS:  # reported as the span ends
+            end = time.perf_counter()
+            _compile_spans.append((end - seconds, end))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    _listening = True
+
+
+def union_seconds(spans) -> float:
+    """Total length of the union of ``(start, end)`` spans: a jit traced inside another one's trace
+    (and its lowering) lies within the outer span and counts once."""
+    total, start, end = 0.0, None, None
+    for s, e in sorted(spans):
+        if end is None or s > end:
+            total += 0.0 if end is None else end - start
+            start, end = s, e
+        else:
+            end = max(end, e)
+    return total + (0.0 if end is None else end - start)
+
+
+TIMING_COLUMNS = ("unit", "kind", "arm", "case", "controller", "wall_s", "compile_s")
+
+
+def _timing_path(store: UnitStore, name: str) -> Path:
+    return store.root / "timing" / f"{name}.json"
+
+
 def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
+    """Compute and save one unit; its wall time and compile time go to ``DIR/timing/NAME.json``."""
+    _listen_to_compiles()
+    _compile_spans.clear()
+    t0 = time.perf_counter()
+    _compute_unit(cfg, store, arms, unit)
+    wall = time.perf_counter() - t0
+    kind, arm_spec, case, ctrl, name, key = unit
+    record = {"key": key, "wall_s": wall, "compile_s": union_seconds(_compile_spans)}
+    atomic_write_text(_timing_path(store, name), json.dumps(record))
+
+
+def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     from . import _pipeline as pipe
 
     kind, arm_spec, case, ctrl, name, key = unit
@@ -276,6 +336,9 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
                 _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
     rows = collect_rows(cfg, store)
     write_table(out, rows)
+    timing = write_timing(cfg, store)
+    if cfg.progress:
+        print(timing_summary(timing), flush=True)
     if cfg.figures:
         from ._report import make_report
 
@@ -404,6 +467,52 @@ def collect_rows(cfg: SweepConfig, store: UnitStore) -> list[dict]:
                     np.savez_compressed(buf, **traces)
                     atomic_write_bytes(store.root / "traces" / f"{label}_{case}_{ctrl}.npz", buf.getvalue())
     return rows
+
+
+def write_timing(cfg: SweepConfig, store: UnitStore) -> list[dict]:
+    """``DIR/timing.csv``: one row per unit of the sweep (:data:`TIMING_COLUMNS`): its wall time
+    and the part of it spent tracing, lowering and compiling (seconds; NaN for a unit computed
+    before these records existed). A resumed sweep keeps the records of the units it did not
+    recompute, so the table describes the runs that produced the results."""
+    rows = []
+    for phase in _units(cfg):
+        for group in phase.values():
+            for kind, arm, case, ctrl, name, key in group:
+                rec = {}
+                try:
+                    rec = json.loads(_timing_path(store, name).read_text())
+                except (OSError, ValueError):
+                    pass
+                ok = rec.get("key") == key
+                rows.append({"unit": name, "kind": "build" if kind == "scen" else "simulation",
+                             "arm": _arm_label(arm), "case": case, "controller": ctrl or "",
+                             "wall_s": rec["wall_s"] if ok else float("nan"),
+                             "compile_s": rec["compile_s"] if ok else float("nan")})
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=TIMING_COLUMNS)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(Path(cfg.out) / "timing.csv", buf.getvalue())
+    return rows
+
+
+def timing_summary(rows: list[dict]) -> str:
+    """Sums of :func:`write_timing`'s rows: builds (planning and IK validation) and simulations,
+    each split into compilation and the rest. Unit times add up over the worker processes, so
+    with ``jobs`` workers they exceed the wall time of the sweep."""
+    def sums(kind):
+        sel = [r for r in rows if r["kind"] == kind and np.isfinite(r["wall_s"])]
+        return sum(r["wall_s"] for r in sel), sum(r["compile_s"] for r in sel), len(sel)
+
+    lines = ["time in units (summed over workers):"]
+    tw = tc = 0.0
+    for kind, label in (("build", "builds (planning, IK)"), ("simulation", "simulations")):
+        w, c, n = sums(kind)
+        tw, tc = tw + w, tc + c
+        lines.append(f"  {label:<22} {n:3d} units {w:8.1f} s, of which compiling {c:7.1f} s")
+    share = f" ({100 * tc / tw:.0f} %)" if tw > 0 else ""
+    lines.append(f"  {'total':<22}           {tw:8.1f} s, of which compiling {tc:7.1f} s{share}")
+    return "\n".join(lines)
 
 
 def write_table(out: Path, rows: list[dict]) -> None:
