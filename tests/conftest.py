@@ -76,8 +76,8 @@ _LONGEST_FIRST = ("test_sim.py", "test_controllers.py", "test_sim_guided.py", "t
 def pytest_collection_modifyitems(session, config, items):
     """Collect the longest test files first. ``make test`` runs ``-n 2 --dist loadfile``: xdist hands
     out whole files in collection order, each worker taking the next file when it is done, so
-    starting with the longest ones keeps the two workers' totals even (in alphabetical order the run
-    took 1,005 s with 1,728 s of CPU time, so one worker idled for about 280 s at the end). Order
-    within a file is unchanged."""
+    starting with the longest ones keeps the two workers' totals even (in alphabetical order a run
+    took 1,005 s with 1,728 s of CPU time: the workers idled about 280 s between them, waiting on
+    test_sim.py, collected late). Order within a file is unchanged."""
     rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
     items.sort(key=lambda it: rank.get(it.path.name, len(rank)))  # stable: files keep their order
