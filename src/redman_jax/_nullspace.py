@@ -420,12 +420,15 @@ def _select_max(x, y):
 
 
 def _clamped_numerator(sdf, mask, a, D, form: str, clamp):
-    """``(r, num)`` with ``r = max(sdf, clamp)`` and ``V_o'(r) = num / r^4 = -a (3D -/+ 2r) / (D r^4)``
-    (``num`` zero beyond ``D`` and on masked slots), as compare-and-selects: the one formula of the
-    magnitude that :func:`_slot_gradient` and its tangent :func:`_slot_tangent` share."""
+    """``(r, num, dnum)`` with ``r = max(sdf, clamp)``, ``V_o'(r) = num / r^4 = -a (3D -/+ 2r) /
+    (D r^4)`` and ``dnum = d num / dr`` (both zero beyond ``D`` and on masked slots), as
+    compare-and-selects: the one formula of the magnitude that :func:`_slot_gradient` and its
+    tangent :func:`_slot_tangent` share (the gradient leaves ``dnum`` unused)."""
     sgn = -1.0 if form == "minus" else 1.0
     r = jnp.where(sdf > clamp, sdf, clamp)
-    return r, jnp.where(mask & (sdf <= D), (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
+    on = mask & (sdf <= D)
+    num = jnp.where(on, (-a / D) * (3.0 * D + sgn * 2.0 * r), 0.0)
+    return r, num, jnp.where(on, (-a / D) * (2.0 * sgn), 0.0)
 
 
 def _to_slot(R, w):
@@ -456,7 +459,7 @@ def _slot_gradient(kind: str, R, p, dims, mask, X, a, D, form: str, clamp):
     d = tuple(X[j] - p[j] for j in range(3))  # world offsets
 
     def num_r4(sdf):  # V_o'(r) = num / r^4, r = max(sdf, clamp)
-        r, num = _clamped_numerator(sdf, mask, a, D, form, clamp)
+        r, num, _ = _clamped_numerator(sdf, mask, a, D, form, clamp)
         r2 = r * r
         return num, jnp.where(r > 0, r2 * r2, 1.0)
 
@@ -521,14 +524,13 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
     formulation :func:`~redman_jax._fields.obstacle_field_gradient` to rounding, more than 2 mm
     from any surface (closer, the clamp makes both cancel terms of order 1e15; tested).
     """
-    sgn = -1.0 if form == "minus" else 1.0
     d = tuple(X[j] - p[j] for j in range(3))
 
     def coefs(sdf, rho):
         """``(c, (V'' - c) / rho^2)`` from one quotient ``1 / (r^5 rho^3)``."""
-        r, num = _clamped_numerator(sdf, mask, a, D, form, clamp)
-        slope5 = jnp.where(mask & (sdf <= D) & (sdf > clamp),  # r^5 V'' = d(num / r^4)/dr r^5
-                           (-a / D) * (2.0 * sgn) * r - 4.0 * num, 0.0)
+        r, num, dnum = _clamped_numerator(sdf, mask, a, D, form, clamp)
+        # r^5 V'' = r^5 d(num / r^4)/dr, zero where the clamp holds r
+        slope5 = jnp.where(sdf > clamp, dnum * r - 4.0 * num, 0.0)
         r2 = r * r
         rho2 = rho * rho
         quot = 1.0 / jnp.where(rho > 0, r2 * r2 * r * rho2 * rho, 1.0)
