@@ -154,3 +154,42 @@ def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon, monkeypatc
     one = simulate_batch(ARM, stack_scenarios(scs[::2]), CTRL, GAINS,
                          params=dataclasses.replace(PARAMS, compact=False))
     np.testing.assert_allclose(np.asarray(one.q[1]), np.asarray(single2.q), rtol=1e-10, atol=1e-12)
+
+
+def test_cases_padded_to_common_shapes_share_one_compilation(horizon):
+    """Guided runs of two "cases" with different obstacle capacities, padded to common shapes
+    (``_pipeline.pad_case``, what the study does with its small cases): the second one reuses the
+    first one's compiled programs, and the padded run equals the unpadded one (the masked slots add
+    zeros to the field; separately compiled programs: to rounding)."""
+    from jax import monitoring
+
+    from redman_jax._pipeline import pad_case
+
+    shapes = (2, (2, 2, 3))
+    other = guided_scenario((0.1, -0.3, 0.0), seed=1)
+    p0 = np.asarray(end_effector_pose(ARM, ARM.q0)[0])
+    other = eqx.tree_at(lambda s: s.obstacles, other, make_obstacles(
+        boxes=[(np.eye(3), p0 + [0.0, 0.5, 0.4], (0.05, 0.05, 0.05))],
+        cylinders=[(np.eye(3), p0 + [0.4, 0.0, 0.5], (0.04, 0.1))], capacities=(1, 2, 3)))
+    compiles, listening = [], [False]
+    monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiles.append(name)
+        if listening[0] and name == "/jax/core/compile/backend_compile_duration" else None)
+    n = ARM.n_dof
+    ik = tuple(jnp.zeros((1, 2, n)) for _ in range(3))  # unused by a guided run; pad_case pads it
+    runs = []
+    for sc in (SCEN, other):
+        padded, _ = pad_case(stack_scenarios([sc]), ik, shapes)
+        assert padded.obstacles.capacities == (2, 2, 3)
+        listening[0] = True
+        runs.append(simulate_batch(ARM, padded, CTRL, GAINS, params=PARAMS))
+        jax.block_until_ready(runs[-1].q)
+        listening[0] = False
+        if sc is SCEN:
+            compiles.clear()
+    assert compiles == []  # the second case compiled nothing
+    a, b = runs
+    assert int(a.n_steps[0]) == int(horizon.n_steps) and bool(a.success[0])
+    np.testing.assert_allclose(np.asarray(a.q[0]), np.asarray(horizon.q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(a.estimates[0]), np.asarray(horizon.estimates), rtol=1e-10, atol=1e-12)
+    assert not bool(b.diverged[0]) and np.isfinite(np.asarray(b.q)).all()
