@@ -256,8 +256,8 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     t_lme = float("nan")
     field_shift = np.full(R, np.nan)
     if controller.uses_guidance:
-        t_lme = _lme_time(scen, n_timing_calls)
-        field_shift = _goal_field_shift(scen, params, gains)[:R]
+        t_lme = _lme_time(scen_sim, n_timing_calls)
+        field_shift = _goal_field_shift(scen_sim, params, gains)[:R]
     timings = scen_payload["timings"]
     rows = []
     m = res.metrics
@@ -316,11 +316,18 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
 def _goal_field_shift(scen, params, gains) -> np.ndarray:
     """Per scenario: distance [m] from the goal to the guidance field's minimum near it
     (:func:`~redman_jax._guidance.goal_field_minimum`); above 0.10 m no guided run can succeed."""
-    from ._guidance import field_params_or_default, goal_field_minimum
+    from ._guidance import field_params_or_default
 
     fp = field_params_or_default(params.field, gains)
-    shift = jax.jit(jax.vmap(lambda g, o: goal_field_minimum(g, o, fp)[1]))(scen.goal_p, scen.obstacles)
-    return np.asarray(shift)
+    return np.asarray(_field_shifts(scen.goal_p, scen.obstacles, fp))
+
+
+@eqx.filter_jit
+def _field_shifts(goal_p, obstacles, fp):
+    """Module-level, so the cases that share their shapes share its compilation."""
+    from ._guidance import goal_field_minimum
+
+    return jax.vmap(lambda g, o: goal_field_minimum(g, o, fp)[1])(goal_p, obstacles)
 
 
 def _lme_time(scen, n_calls: int) -> float:
@@ -334,5 +341,6 @@ def _lme_time(scen, n_calls: int) -> float:
     if buf is None:
         return float("nan")
     x = s.reference.p[0]
-    return time_per_call(lambda xx: estimator_update(xx, s.goal_p, s.obstacles, buf, FieldParams()),
-                         x, n_calls=n_calls)
+    # the module-level function itself (not a closure), so that cases sharing their shapes share
+    # its compilation (time_per_call keeps one jitted wrapper per function)
+    return time_per_call(estimator_update, x, s.goal_p, s.obstacles, buf, FieldParams(), n_calls=n_calls)
