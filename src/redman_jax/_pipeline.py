@@ -230,9 +230,11 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     if shapes is not None and tuple(shapes[1]) == scen_payload["scenarios"].obstacles.capacities:
         # Obstacles stay compacted where the case keeps its own shapes (warehouse). The small cases
         # share theirs, the guided runs too: their guidance field and estimator evaluate every
-        # slot at the end-effector, padded ones included, but few slots are padded there (8-DOF
-        # simple, (4, 1, 1) -> (4, 1, 21): vector field 95 -> 109 us, batch 20), far less than a
-        # compilation. Padded to the warehouse's 97 boxes they would double (205 us).
+        # slot at the end-effector, padded ones included, which costs run time (8-DOF simple,
+        # compacted (4, 1, 1) -> shared (4, 5, 21): vector field 91 -> 120 us at batch 20), but
+        # much less than a compilation (9-DOF simple in the study: unit 48.2 -> 7.3 s, its run
+        # 6.5 -> 6.7 s). Padded to the warehouse's box slots they would cost more (8-DOF simple at
+        # (4, 97, 21): 205 us), so the warehouse keeps its own.
         shapes = (shapes[0], scen.obstacles.capacities)
     if shapes is not None:
         scen_sim, ik_sim = pad_case(scen, ik, shapes)
