@@ -513,6 +513,34 @@ def test_slot_layouts_compute_the_same(rng, spp):
     np.testing.assert_allclose(np.asarray(gb[0]), gs, rtol=1e-12, atol=1e-14 * np.abs(gr).max())
 
 
+@pytest.mark.parametrize("spp", [1, 7, 16, 45])
+def test_padding_to_the_layout_keeps_the_groups_and_the_sums(rng, spp):
+    """``pad_to_layout`` pads each family to the capacity its grouped layout fills (so the passes no
+    longer pad the last group at every call): the same segments and group sizes, no padding left
+    in any group, and bit-identical gradients and distances (the padded slots are the ones the
+    passes padded with, in the same places)."""
+    from redman_jax._obstacles import (layout_capacity, pad_to_layout, points_min_distance,
+                                       slot_steps, with_slots_per_step)
+
+    obs = with_slots_per_step(rj.pad_obstacles(_many_obstacles(rng, 40, 30), (40, 97, 63)), spp)
+    padded = pad_to_layout(obs)
+    fams = lambda o: (o.spheres, o.boxes, o.cylinders)
+    assert padded.capacities == tuple(layout_capacity(k, spp) for k in obs.capacities)
+    if spp == 45:  # a head of 16, then 1 group of 24, 2 of 41 (82 slots), 2 of 24 (48)
+        assert padded.capacities == (40, 98, 64)
+    for f, fp in zip(fams(obs), fams(padded)):
+        old, new = slot_steps(f, spp), slot_steps(fp, spp)
+        assert [(st, c, sl[0].shape[0]) for st, sl, c in old] == [(st, c, sl[0].shape[0]) for st, sl, c in new]
+        for st, sl, c in new:  # every group is whole: no padding of the pass's own
+            assert fp.capacity >= st + sl[0].shape[0] * c
+        assert fp.capacity == max(st + sl[0].shape[0] * c for st, sl, c in new)
+    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (36, 3)))
+    f = jax.jit(lambda o: (obstacle_gradients(o, X, 0.05, 0.75), points_min_distance(o, X)))
+    for a, b in zip(f(obs), f(padded)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert pad_to_layout(padded) is padded
+
+
 def test_compact_obstacles_keeps_the_obstacles_and_drops_padding(rng):
     from redman_jax._obstacles import compact_obstacles, points_min_distance, stack_obstacles
 

@@ -297,6 +297,31 @@ def slot_steps(fam: Shapes, slots_per_step: int) -> list:
     return segs
 
 
+def layout_capacity(K: int, slots_per_step: int) -> int:
+    """The capacity, at least ``K``, at which the layout of :func:`slot_steps` for ``K`` slots
+    fills every group: its head and ``steps`` groups of ``c`` slots, with no padding of its own."""
+    if slots_per_step <= 1 or K < _MIN_GROUPED_SLOTS:
+        return K
+    head = min(_HEAD_SLOTS, K) if slots_per_step > _HEAD_GROUP else 0
+    rest = K - head
+    if rest <= 0:
+        return K
+    steps = -(-rest // slots_per_step)
+    return head + steps * -(-rest // steps)
+
+
+def pad_to_layout(obs: ObstacleSet) -> ObstacleSet:
+    """``obs`` with every family padded (masked slots) to its :func:`layout_capacity`: the same
+    obstacles and the same groups, so the passes sum the same values in the same order. Called once
+    before a loop that evaluates the obstacles many times (the simulator): otherwise
+    :func:`slot_steps` pads the last group at every evaluation, a copy of the family's arrays
+    (8-DOF welding padded to 146 box slots, velocity OSC, 20 seeds: 17.3 against 13.9 s at 148
+    slots, whose groups need no padding)."""
+    fams = (obs.spheres, obs.boxes, obs.cylinders)
+    caps = tuple(layout_capacity(f.capacity, obs.slots_per_step) for f in fams)
+    return obs if caps == obs.capacities else pad_obstacles(obs, caps)
+
+
 def stack_obstacles(sets) -> ObstacleSet:
     """Pad a list of obstacle sets to common capacities and stack them along a new leading axis."""
     sets = list(sets)
