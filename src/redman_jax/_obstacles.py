@@ -272,6 +272,23 @@ def _grouped(fam: Shapes, start: int, stop: int, c: int):
     return (shape(f.R), shape(f.p), shape(f.dims), shape(f.mask))
 
 
+def _segments(K: int, slots_per_step: int) -> list:
+    """The layout of :func:`slot_steps` for ``K`` slots as ``(start, stop, c)`` segments of groups
+    of ``c`` slots; the last segment's ``stop`` passes ``K`` where its groups need padding."""
+    if slots_per_step <= 1 or K < _MIN_GROUPED_SLOTS:
+        return [(0, K, 1)]
+    segs, start = [], 0
+    if slots_per_step > _HEAD_GROUP:
+        start = min(_HEAD_SLOTS, K)
+        segs.append((0, start, _HEAD_GROUP))
+    rest = K - start
+    if rest > 0:
+        steps = -(-rest // slots_per_step)
+        c = -(-rest // steps)
+        segs.append((start, start + steps * c, c))
+    return segs
+
+
 def slot_steps(fam: Shapes, slots_per_step: int) -> list:
     """``fam``'s slots laid out for the passes: a list of segments ``(start, slots, c)``, each one
     ``lax.scan`` over groups of ``c`` slots from slot ``start`` on (``slots``: ``(R, p, dims, mask)``
@@ -280,34 +297,20 @@ def slot_steps(fam: Shapes, slots_per_step: int) -> list:
     * fewer than 32 slots, or ``slots_per_step = 1``: one slot per step;
     * otherwise a head of ``_HEAD_SLOTS`` slots in groups of ``_HEAD_GROUP`` (a scene using few of
       many padded slots, e.g. a case padded to another case's capacity, computes only those), then
-      the rest in ``ceil(rest / slots_per_step)`` even groups (the last padded with masked slots).
+      the rest in ``ceil(rest / slots_per_step)`` even groups (the last padded with masked slots;
+      :func:`pad_to_layout` pads the family once instead).
     """
     K = fam.capacity
-    if slots_per_step <= 1 or K < _MIN_GROUPED_SLOTS:
+    segs = _segments(K, slots_per_step)
+    if segs[0][2] == 1:
         return [(0, (fam.R, fam.p, fam.dims, fam.mask), 1)]
-    segs, start = [], 0
-    if slots_per_step > _HEAD_GROUP:
-        start = min(_HEAD_SLOTS, K)
-        segs.append((0, _grouped(fam, 0, start, _HEAD_GROUP), _HEAD_GROUP))
-    rest = K - start
-    if rest > 0:
-        steps = -(-rest // slots_per_step)
-        c = -(-rest // steps)
-        segs.append((start, _grouped(fam, start, K, c), c))
-    return segs
+    return [(start, _grouped(fam, start, min(stop, K), c), c) for start, stop, c in segs]
 
 
 def layout_capacity(K: int, slots_per_step: int) -> int:
     """The capacity, at least ``K``, at which the layout of :func:`slot_steps` for ``K`` slots
     fills every group: its head and ``steps`` groups of ``c`` slots, with no padding of its own."""
-    if slots_per_step <= 1 or K < _MIN_GROUPED_SLOTS:
-        return K
-    head = min(_HEAD_SLOTS, K) if slots_per_step > _HEAD_GROUP else 0
-    rest = K - head
-    if rest <= 0:
-        return K
-    steps = -(-rest // slots_per_step)
-    return head + steps * -(-rest // steps)
+    return max([K] + [stop for _, stop, _ in _segments(K, slots_per_step)])
 
 
 def pad_to_layout(obs: ObstacleSet) -> ObstacleSet:
