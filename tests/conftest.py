@@ -3,6 +3,7 @@
 Each test module uses its own small problem sizes; heavy runs live in benchmarks/.
 """
 
+import contextlib
 import os
 
 os.environ.setdefault("REDMAN_JAX_X64", "1")
@@ -63,6 +64,25 @@ def fd_jacobian(f, x, eps=1e-6, order=2):
             out[..., i] = (8 * d1 - d2) / (12 * eps)
     return out
 
+
+
+@contextlib.contextmanager
+def backend_compiles():
+    """The XLA compilations that finish inside the block: a list of their durations [s], filled as
+    they happen (``jax.monitoring``; the listener is removed on exit)."""
+    from jax import monitoring
+
+    seen = []
+
+    def on_duration(name, secs, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            seen.append(secs)
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        yield seen
+    finally:
+        monitoring.unregister_event_duration_listener(on_duration)
 
 # Files in decreasing order of their run time under ``make test`` (seconds of one xdist worker,
 # measured 2026-12-02 with ``--durations``): test_sim 361, test_controllers 319, test_sim_guided

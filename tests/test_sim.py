@@ -210,7 +210,7 @@ def test_cases_padded_to_common_shapes_share_one_compilation():
     """Two "cases" with different reference and obstacle capacities, padded to common shapes
     (``_pipeline.pad_case``, what the study does): the second one reuses the first one's compiled
     simulation, and both give the runs of their unpadded versions (valid samples)."""
-    from jax import monitoring
+    from conftest import backend_compiles
 
     from redman_jax._pipeline import pad_case
 
@@ -220,18 +220,15 @@ def test_cases_padded_to_common_shapes_share_one_compilation():
     b = eqx.tree_at(lambda s: s.obstacles, b, rj_pad(b.obstacles, (3, 2, 1)))
     batch = lambda sc, j: (stack_scenarios([sc, sc]), tuple(jnp.stack([x, x]) for x in j))
     shapes = (CAP, (3, 2, 1))
-    compiles = []
-    monitoring.register_event_duration_secs_listener(
-        lambda name, secs, **kw: compiles.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
     g = toy_gains("osc")
     results = []
     for sc, j in ((a, ja), (b, jb)):
         scp, jp = pad_case(*batch(sc, j), shapes)
         assert scp.reference.capacity == CAP and scp.obstacles.capacities == (3, 2, 1)
-        n0 = len(compiles)
-        padded = simulate_batch(ARM, scp, CTRL, g, ik=jp)
-        jax.block_until_ready(padded.q)
-        results.append((len(compiles) - n0, padded, simulate_batch(ARM, *batch(sc, j)[:1], CTRL, g, ik=batch(sc, j)[1])))
+        with backend_compiles() as compiles:
+            padded = simulate_batch(ARM, scp, CTRL, g, ik=jp)
+            jax.block_until_ready(padded.q)
+        results.append((len(compiles), padded, simulate_batch(ARM, *batch(sc, j)[:1], CTRL, g, ik=batch(sc, j)[1])))
     assert results[1][0] == 0  # no new compilation for the second case
     for _, padded, plain in results:
         n = int(plain.n_samples[0])

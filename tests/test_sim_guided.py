@@ -161,7 +161,7 @@ def test_cases_padded_to_common_shapes_share_one_compilation(horizon):
     (``_pipeline.pad_case``, what the study does with its small cases): the second one reuses the
     first one's compiled programs, and the padded run equals the unpadded one (the masked slots add
     zeros to the field; separately compiled programs: to rounding)."""
-    from jax import monitoring
+    from conftest import backend_compiles
 
     from redman_jax._pipeline import pad_case
 
@@ -171,22 +171,15 @@ def test_cases_padded_to_common_shapes_share_one_compilation(horizon):
     other = eqx.tree_at(lambda s: s.obstacles, other, make_obstacles(
         boxes=[(np.eye(3), p0 + [0.0, 0.5, 0.4], (0.05, 0.05, 0.05))],
         cylinders=[(np.eye(3), p0 + [0.4, 0.0, 0.5], (0.04, 0.1))], capacities=(1, 2, 3)))
-    compiles, listening = [], [False]
-    monitoring.register_event_duration_secs_listener(
-        lambda name, secs, **kw: compiles.append(name)
-        if listening[0] and name == "/jax/core/compile/backend_compile_duration" else None)
     n = ARM.n_dof
     ik = tuple(jnp.zeros((1, 2, n)) for _ in range(3))  # unused by a guided run; pad_case pads it
     runs = []
     for sc in (SCEN, other):
         padded, _ = pad_case(stack_scenarios([sc]), ik, shapes)
         assert padded.obstacles.capacities == (2, 2, 3)
-        listening[0] = True
-        runs.append(simulate_batch(ARM, padded, CTRL, GAINS, params=PARAMS))
-        jax.block_until_ready(runs[-1].q)
-        listening[0] = False
-        if sc is SCEN:
-            compiles.clear()
+        with backend_compiles() as compiles:
+            runs.append(simulate_batch(ARM, padded, CTRL, GAINS, params=PARAMS))
+            jax.block_until_ready(runs[-1].q)
     assert compiles == []  # the second case compiled nothing
     a, b = runs
     assert int(a.n_steps[0]) == int(horizon.n_steps) and bool(a.success[0])
