@@ -186,3 +186,30 @@ def test_cases_padded_to_common_shapes_share_one_compilation(horizon):
     np.testing.assert_allclose(np.asarray(a.q[0]), np.asarray(horizon.q), rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(a.estimates[0]), np.asarray(horizon.estimates), rtol=1e-10, atol=1e-12)
     assert not bool(b.diverged[0]) and np.isfinite(np.asarray(b.q)).all()
+
+
+def test_estimator_timing_times_the_update_the_simulation_runs(monkeypatch):
+    """``t_lme_per_sample`` times ``estimator_update`` with the run's own settings: its field
+    parameters, ``lme_mu``, ``lme_max_jump`` and buffer size (not the thesis defaults)."""
+    from redman_jax import _metrics, _pipeline
+    from redman_jax._fields import FieldParams
+    from redman_jax._guidance import estimator_update
+
+    seen = {}
+
+    def fake_time_per_call(fn, *args, n_calls):
+        seen["fn"], seen["args"] = fn, args
+        return 1.0
+
+    monkeypatch.setattr(_metrics, "time_per_call", fake_time_per_call)
+    field = FieldParams(a=0.002)
+    params = dataclasses.replace(PARAMS, buffer_size=7, field=field, lme_mu=jnp.asarray(3e-5),
+                                 lme_max_jump=jnp.asarray(0.5))
+    scen = stack_scenarios([SCEN, SCEN])
+    assert _pipeline._lme_time(scen, 5, params, GAINS) == 1.0
+    x, goal, obs, buf, fp, mu, max_jump = seen["args"]
+    assert seen["fn"] is estimator_update
+    assert buf.p.shape == (7, 3) and not np.any(np.asarray(buf.mask))
+    assert fp is field
+    assert float(mu) == 3e-5 and float(max_jump) == 0.5
+    np.testing.assert_array_equal(np.asarray(goal), np.asarray(SCEN.goal_p))

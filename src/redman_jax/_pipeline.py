@@ -258,7 +258,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     t_lme = float("nan")
     field_shift = np.full(R, np.nan)
     if controller.uses_guidance:
-        t_lme = _lme_time(scen_sim, n_timing_calls)
+        t_lme = _lme_time(scen_sim, n_timing_calls, params, gains)
         field_shift = _goal_field_shift(scen_sim, params, gains)[:R]
     timings = scen_payload["timings"]
     rows = []
@@ -332,17 +332,18 @@ def _field_shifts(goal_p, obstacles, fp):
     return jax.vmap(lambda g, o: goal_field_minimum(g, o, fp)[1])(goal_p, obstacles)
 
 
-def _lme_time(scen, n_calls: int) -> float:
-    """Mean time of one local-minima-estimator update (Hessian of the total field + buffer push)."""
-    from ._fields import FieldParams
-    from ._guidance import VirtualBuffer, estimator_update
+def _lme_time(scen, n_calls: int, params, gains) -> float:
+    """Mean time of one local-minima-estimator update (Hessian of the total field + buffer push),
+    the update the simulation runs: its field parameters, ``lme_mu``, ``lme_max_jump`` and a buffer
+    of ``buffer_size`` virtual obstacles (``params``: the run's ``SimParams``)."""
+    from ._guidance import VirtualBuffer, estimator_update, field_params_or_default
     from ._metrics import time_per_call
 
     s = _take(scen, 0)
-    buf = VirtualBuffer.empty(20, s.goal_p.dtype) if hasattr(VirtualBuffer, "empty") else None
-    if buf is None:
-        return float("nan")
+    buf = VirtualBuffer.empty(params.buffer_size, s.goal_p.dtype)
+    fp = field_params_or_default(params.field, gains)
     x = s.reference.p[0]
     # the module-level function itself (not a closure), so that cases sharing their shapes share
     # its compilation (time_per_call keeps one jitted wrapper per function)
-    return time_per_call(estimator_update, x, s.goal_p, s.obstacles, buf, FieldParams(), n_calls=n_calls)
+    return time_per_call(estimator_update, x, s.goal_p, s.obstacles, buf, fp, params.lme_mu,
+                         params.lme_max_jump, n_calls=n_calls)
