@@ -270,7 +270,8 @@ def test_sharded_batch_equals_single_device(tmp_path):
     script.write_text(SHARD_SCRIPT)
     outs = {}
     for n in (1, 2):
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+        flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={n}".strip()
+        env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
         path = tmp_path / f"out{n}.npy"
         proc = subprocess.run([sys.executable, str(script), str(path)], env=env, capture_output=True,
                               text=True, timeout=300)
