@@ -305,7 +305,7 @@ def test_obstacle_gradient_tangent_is_the_field_hessian(form, rng):
         [[0.02, 0.37, 0.75], [-0.38, -0.22, 0.52]],  # inside the boxes
         np.array([0.3, -0.35, 1.1]) + np.array([[0.0, 0.02, 0.01], [0.015, 0.0, -0.08]]),  # cylinder
     ])
-    dmin = np.asarray(jax.vmap(lambda x: jnp.min(jnp.abs(rj.obstacle_distances(obs, x))))(X))
+    dmin = np.asarray(jax.jit(jax.vmap(lambda x: jnp.min(jnp.abs(rj.obstacle_distances(obs, x)))))(X))
     X = X[dmin > 2e-3]
     assert X.shape[0] > 250
     V = rng.normal(size=X.shape)
@@ -318,11 +318,11 @@ def test_obstacle_gradient_tangent_is_the_field_hessian(form, rng):
     scale = np.linalg.norm(t_ref, axis=1, keepdims=True) + 1e-6
     np.testing.assert_array_less(np.abs(t - t_ref) / scale, 1e-9)
     assert np.all(np.linalg.norm(t_ref[-4:], axis=1) > 1.0)  # the interior points are covered
-    g_ref = np.asarray(obstacle_gradients(obs, jnp.asarray(X), 0.05, 0.75, form, impl="reference"))
+    g_ref = np.asarray(jax.jit(lambda P: obstacle_gradients(obs, P, 0.05, 0.75, form, impl="reference"))(jnp.asarray(X)))
     np.testing.assert_allclose(g, g_ref, rtol=1e-10, atol=1e-12)
     W = rng.normal(size=X.shape)
-    vjp_new = jax.grad(lambda P: jnp.sum(jnp.stack(_obstacle_gradient_planes(obs, planes(P), 0.05, 0.75, form), 1) * W))
-    vjp_ref = jax.grad(lambda P: jnp.sum(obstacle_gradients(obs, P, 0.05, 0.75, form, impl="reference") * W))
+    vjp_new = jax.jit(jax.grad(lambda P: jnp.sum(jnp.stack(_obstacle_gradient_planes(obs, planes(P), 0.05, 0.75, form), 1) * W)))
+    vjp_ref = jax.jit(jax.grad(lambda P: jnp.sum(obstacle_gradients(obs, P, 0.05, 0.75, form, impl="reference") * W)))
     a, b = np.asarray(vjp_new(jnp.asarray(X))), np.asarray(vjp_ref(jnp.asarray(X)))
     np.testing.assert_array_less(np.abs(a - b) / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-6), 1e-9)
 
@@ -339,7 +339,7 @@ def test_obstacle_policy_is_potential_descent(arm9, rng):
         return jnp.sum(jax.vmap(lambda x: obstacle_field_potential(obs, x, a, D))(pois))
 
     pol = jax.jit(lambda q: obstacle_policy(arm9, rj.kinematics(arm9, q), q, obs, gamma, a, D))
-    gU = jax.jit(jax.grad(U))
+    gU, U = jax.jit(jax.grad(U)), jax.jit(U)
     dmin = jax.jit(lambda q: jnp.min(jax.vmap(lambda x: rj.obstacle_distances(obs, x))(rj.poi_positions(arm9, q))))
     for q in _configs(arm9, rng, 4, spread=0.5):
         h = np.asarray(pol(q))
@@ -498,13 +498,13 @@ def test_slot_layouts_compute_the_same(rng, spp):
     assert grouped.slots_per_step == spp and obs.slots_per_step == 1
     g1 = np.asarray(jax.jit(lambda o: obstacle_gradients(o, X, 0.05, 0.75))(obs))
     gs = np.asarray(jax.jit(lambda o: obstacle_gradients(o, X, 0.05, 0.75))(grouped))
-    gr = np.asarray(obstacle_gradients(obs, X, 0.05, 0.75, impl="reference"))
+    gr = np.asarray(jax.jit(lambda P: obstacle_gradients(obs, P, 0.05, 0.75, impl="reference"))(X))
     assert np.abs(gr).max() > 0
     np.testing.assert_allclose(gs, gr, rtol=1e-10, atol=1e-12 * np.abs(gr).max())
     np.testing.assert_allclose(gs, g1, rtol=1e-10, atol=1e-12 * np.abs(gr).max())
     d1 = np.asarray(jax.jit(points_min_distance)(obs, X))
     ds = np.asarray(jax.jit(points_min_distance)(grouped, X))
-    dr = np.asarray(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x)))(X))
+    dr = np.asarray(jax.jit(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x))))(X))
     np.testing.assert_allclose(ds, d1, rtol=1e-14, atol=1e-16)  # one sdf per pair: rounding only
     np.testing.assert_allclose(ds, dr, rtol=1e-13, atol=1e-15)
     # and under vmap over a batch of scenes, as the simulator runs it
