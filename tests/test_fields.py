@@ -145,7 +145,7 @@ def test_sdf_matches_brute_force_surface_sampling(kind, dims, surface, rng):
     x = xl @ R.T + p
     inside = _inside(kind, dims, xl)
     assert inside.sum() > 20 and (~inside).sum() > 20
-    sdf = np.asarray(jax.vmap(lambda q: obstacle_distances(obs, q)[0])(jnp.asarray(x)))
+    sdf = np.asarray(jax.jit(jax.vmap(lambda q: obstacle_distances(obs, q)[0]))(jnp.asarray(x)))
     brute, _ = tree.query(x)
     # sign: negative inside, positive outside
     assert np.all(sdf[inside] <= 0) and np.all(sdf[~inside] > 0)
@@ -163,7 +163,7 @@ def test_sdf_normals_are_unit_and_match_finite_differences(kind, dims, surface, 
     obs = make_obstacles(**{kind: [(R, p, dims[:need])]})
     xl = rng.uniform(-2.0, 2.0, size=(60, 3)) * np.max(dims)
     x = xl @ R.T + p
-    d, n = jax.vmap(obstacle_sdf_and_normals, in_axes=(None, 0))(obs, jnp.asarray(x))
+    d, n = jax.jit(jax.vmap(obstacle_sdf_and_normals, in_axes=(None, 0)))(obs, jnp.asarray(x))
     sdf = lambda q: np.asarray(_distances(obs, jnp.asarray(q)))[:, 0]
     eps = 1e-6
     fd = np.stack([(sdf(x + eps * e) - sdf(x - eps * e)) / (2 * eps) for e in np.eye(3)], -1)
@@ -260,7 +260,7 @@ def test_points_sdf_and_normals_equal_per_point_autodiff(rng):
     near = (centres[:, None, :] + rng.uniform(-0.12, 0.12, (len(centres), 40, 3))).reshape(-1, 3)
     xs = jnp.asarray(np.concatenate([_outside_points(obs, rng, 30), rng.uniform(-0.8, 0.8, (300, 3)), near]))
     D, N = jax.jit(points_sdf_and_normals)(obs, xs)
-    Dr, Nr = jax.vmap(lambda x: obstacle_sdf_and_normals(obs, x))(xs)
+    Dr, Nr = jax.jit(jax.vmap(lambda x: obstacle_sdf_and_normals(obs, x)))(xs)
     assert (np.asarray(Dr) < 0).any() and D.shape == Dr.shape and N.shape == Nr.shape
     np.testing.assert_allclose(D, Dr, rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(N, Nr, rtol=1e-12, atol=1e-13)
@@ -275,7 +275,7 @@ def test_points_min_distance_equals_per_point_minimum(rng):
     obs = _scene()
     xs = np.concatenate([_outside_points(obs, rng, 40), rng.uniform(-0.8, 0.8, (200, 3)),
                          np.asarray(obs.boxes.p[:1]), np.asarray(obs.cylinders.p[:1])])
-    ref = np.asarray(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x)))(jnp.asarray(xs)))
+    ref = np.asarray(jax.jit(jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x))))(jnp.asarray(xs)))
     assert (ref < 0).any() and (ref > 0).any()
     f = jax.jit(points_min_distance)
     np.testing.assert_allclose(np.asarray(f(obs, jnp.asarray(xs))), ref, rtol=1e-13, atol=1e-15)
