@@ -22,7 +22,7 @@ run: $(VENV)/.installed
 # runs them too.
 PYTEST_MARK ?= not slow
 test: $(VENV)/.installed
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "$(PYTEST_MARK)"; rc=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "$(PYTEST_MARK)"; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
 
 test-all: $(VENV)/.installed

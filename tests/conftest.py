@@ -108,8 +108,11 @@ _LONGEST_FIRST = ("test_controllers.py", "test_sim.py", "test_nullspace.py", "te
 
 
 def pytest_collection_modifyitems(session, config, items):
-    """Collect the longest test files first. ``make test`` runs ``-n 2 --dist loadfile``: xdist hands
-    out whole files in collection order, each worker taking the next file when it is done, so
+    """Collect the longest test files first. ``make test`` runs ``-n 2 --dist loadfile
+    --no-loadscope-reorder``: xdist hands out whole files in collection order, each worker taking the
+    next file when it is done (without ``--no-loadscope-reorder``, xdist 3.5 and later hand them out
+    by decreasing number of tests instead: test_sim_guided, 7 tests and about 170 s, went near the
+    end: a ``make test`` on 2026-12-03 took 900 s, its last 20 tests 3.5 min), so
     starting with the longest ones keeps the two workers' totals even (in alphabetical order a run
     took 1,005 s with 1,728 s of CPU time: the workers idled about 280 s between them, waiting on
     test_sim.py, collected late). Order within a file is unchanged."""
