@@ -11,12 +11,12 @@ os.environ.setdefault("REDMAN_JAX_X64", "1")
 # The suite's time is mostly XLA compilation of programs it runs only briefly, and LLVM's
 # optimisation passes are much of that. At backend level 0 four compile-bound tests took 84/77 s
 # against 115/101 s at the default (two interleaved rounds, 2026-12-03); the whole `make test` took
-# 887 s against 1,307 s an hour earlier (sum of test times 1,598 against 2,452 s). The HLO-level passes are the
-# same; the machine code differs (instruction selection, fused multiply-adds), so results agree with
-# the default level's to rounding only (9-DOF forward dynamics and its gradient at 64 random states:
-# within 8e-13 of their largest entry), as between any two machines. The assertions are unchanged.
-# Set before jax's backend starts, and inherited by the subprocesses the tests start (examples,
-# study workers). A level the user chose is kept.
+# 887 s against 1,307 s an hour earlier (sum of test times 1,598 against 2,452 s). The HLO-level
+# passes are the same; the machine code differs (instruction selection, fused multiply-adds), so
+# results agree with the default level's to rounding only (9-DOF forward dynamics and its gradient
+# at 64 random states: within 8e-13 of their largest entry), as between any two machines. The
+# assertions are unchanged. Set before jax's backend starts, and inherited by the subprocesses the
+# tests start (examples, study workers). A level the user chose is kept.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
@@ -110,11 +110,10 @@ _LONGEST_FIRST = ("test_controllers.py", "test_sim.py", "test_nullspace.py", "te
 def pytest_collection_modifyitems(session, config, items):
     """Collect the longest test files first. ``make test`` runs ``-n 2 --dist loadfile
     --no-loadscope-reorder``: xdist hands out whole files in collection order, each worker taking the
-    next file when it is done (without ``--no-loadscope-reorder``, xdist 3.5 and later hand them out
-    by decreasing number of tests instead: test_sim_guided, 7 tests and about 170 s, went near the
-    end: a ``make test`` on 2026-12-03 took 900 s, its last 20 tests 3.5 min), so
-    starting with the longest ones keeps the two workers' totals even (in alphabetical order a run
-    took 1,005 s with 1,728 s of CPU time: the workers idled about 280 s between them, waiting on
-    test_sim.py, collected late). Order within a file is unchanged."""
+    next file when it is done, so starting with the longest ones keeps the two workers' totals even.
+    Without ``--no-loadscope-reorder`` (xdist 3.5 and later) this order is ignored and files go out
+    by decreasing number of tests: test_sim_guided, 7 tests and about 170 s, ran near the end (a
+    ``make test`` on 2026-12-03 took 900 s, its last 20 tests 3.5 min). Order within a file is
+    unchanged."""
     rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
     items.sort(key=lambda it: rank.get(it.path.name, len(rank)))  # stable: files keep their order
