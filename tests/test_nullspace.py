@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import DEFAULT_EMITTERS, LEGACY_EMITTERS_FLAG
 
 import redman_jax as rj
 from redman_jax._fields import obstacle_field_gradient, obstacle_field_potential
@@ -33,11 +34,9 @@ S_ROWS = np.array([1.0, 1.0, 1.0, 0.2, 0.2, 0.2])
 
 # Tests that assert bit-identical results of differently shaped programs (padding, skipped slot
 # groups) hold them for XLA's default CPU fusion emitters, which the library's users run. The suite
-# compiles with the older emitters for speed (conftest), whose vectorised loops and remainders round
-# differently; there these tests are skipped and run unchanged in one subprocess with the default
-# emitters (test_bit_identities_hold_under_the_default_emitters).
-from conftest import DEFAULT_EMITTERS  # noqa: E402
-
+# compiles with the older emitters for speed (conftest), under which they differ by 1 ulp in places;
+# there these tests are skipped and run unchanged in one subprocess with the default emitters
+# (test_bit_identities_hold_under_the_default_emitters).
 _BIT_IDENTITY_TESTS = ("test_padding_to_the_layout_keeps_the_groups_and_the_sums",
                        "test_used_bound_skips_only_padding")
 _default_emitters_only = pytest.mark.skipif(
@@ -52,8 +51,6 @@ def test_bit_identities_hold_under_the_default_emitters():
     import subprocess
     import sys
     from pathlib import Path
-
-    from conftest import LEGACY_EMITTERS_FLAG
 
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != LEGACY_EMITTERS_FLAG)
     env = dict(os.environ, XLA_FLAGS=flags, REDMAN_TEST_DEFAULT_EMITTERS="1")
