@@ -8,6 +8,14 @@ import os
 
 os.environ.setdefault("REDMAN_JAX_X64", "1")
 
+
+def _default_xla_flag(flag: str) -> None:
+    """Append ``--name=value`` to ``XLA_FLAGS`` unless the user already set ``name``."""
+    name = flag.lstrip("-").split("=")[0]
+    if name not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+
+
 # The suite's time is mostly XLA compilation of programs it runs only briefly, and LLVM's
 # optimisation passes are much of that. At backend level 0 four compile-bound tests took 84/77 s
 # against 115/101 s at the default (two interleaved rounds, 2026-12-03); the whole `make test` took
@@ -17,8 +25,7 @@ os.environ.setdefault("REDMAN_JAX_X64", "1")
 # at 64 random states: within 8e-13 of their largest entry), as between any two machines. The
 # assertions are unchanged. Set before jax's backend starts, and inherited by the subprocesses the
 # tests start (examples, study workers). A level the user chose is kept.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+_default_xla_flag("--xla_backend_optimization_level=0")
 # The same holds for XLA's CPU fusion emitters: the older (LLVM IR) loop emitters compile much faster
 # than the default (MLIR) ones and run slower, which suits programs that run briefly. Measured
 # (2026-12-03), six compile-bound tests (test_controllers' and test_sim's gradient tests, the guided
@@ -27,11 +34,11 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 # program compiles in 24 s against 37 s. Results agree to rounding, but the older emitters do not
 # keep the bit identity of differently shaped programs (padded against unpadded obstacle sets: 1 ulp
 # in 3 of the suite's assertions), so the tests that assert it run in a subprocess with the default
-# emitters (test_nullspace's ``_default_emitters_only``). ``REDMAN_TEST_DEFAULT_EMITTERS=1`` keeps the default emitters.
+# emitters (test_nullspace's ``_default_emitters_only``). ``REDMAN_TEST_DEFAULT_EMITTERS=1`` keeps
+# the default emitters.
 LEGACY_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
-if (os.environ.get("REDMAN_TEST_DEFAULT_EMITTERS") != "1"
-        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + LEGACY_EMITTERS_FLAG).strip()
+if os.environ.get("REDMAN_TEST_DEFAULT_EMITTERS") != "1":
+    _default_xla_flag(LEGACY_EMITTERS_FLAG)
 DEFAULT_EMITTERS = LEGACY_EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "").split()
 
 import jax  # noqa: E402
