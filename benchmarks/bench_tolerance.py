@@ -3,13 +3,17 @@
 
 For every case and controller of the study on one arm, the same validated scenarios are simulated
 at rtol 1e-9 / atol 1e-11 (reference) and at candidate tolerances; printed per row: integration
-steps (the batch maximum), wall time (warm) and the largest relative deviation over the seeds of
+steps (the batch maximum), wall time and the largest relative deviation over the seeds of
 each metric the study reports (mean position error, mean orientation error, final position error),
 plus the relative deviation of the seed means (what the study's tables report), and whether
 success / collision / joint-limit flags agree seed by seed. Wall times are of one call each (the
-first candidate's includes the compilation shared by the others).
+reference's and the first candidate's include their compilations).
 
-Run: ``python benchmarks/bench_tolerance.py [--dof 9] [--seeds 1-4] [--cases ...] [--controllers ...]``
+``--solver`` picks the candidates' solver (default the simulator's, Dopri5); the reference is always
+Tsit5 at rtol 1e-9 / atol 1e-11, so a candidate solver is checked against another method.
+
+Run: ``python benchmarks/bench_tolerance.py [--dof 9] [--seeds 1-4] [--cases ...] [--controllers ...]
+[--solver dopri5]``
 """
 
 from __future__ import annotations
@@ -46,13 +50,14 @@ def main():
     ap.add_argument("--seeds", default="1-4")
     ap.add_argument("--cases", default=",".join(rj.CASES))
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient")
+    ap.add_argument("--solver", default=SimParams().solver, help="the candidates' solver")
     ap.add_argument("--ref-budget", type=int, default=256,
                     help="reference step budget per sample (max_steps = samples x this)")
     args = ap.parse_args()
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
-    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}; reference rtol/atol "
-          f"{REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}")
+    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}; candidates {args.solver}; "
+          f"reference tsit5 rtol/atol {REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}")
     print(f"{'case':12s} {'controller':13s} {'rtol/atol':>11s} {'steps':>7s} {'wall s':>7s} "
           f"{'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} | seed means: {'pos':>8s} {'ori':>8s} {'final':>8s} flags")
     worst = {c: 0.0 for c in CANDIDATES}
@@ -68,7 +73,10 @@ def main():
             ikarg = ik if ctrl.needs_joint_reference else None
             runs = {}
             for rtol, atol in (REFERENCE,) + CANDIDATES:
-                p = SimParams(rtol=rtol, atol=atol, max_steps_per_sample=args.ref_budget if rtol < 1e-6 else 64)
+                if (rtol, atol) == REFERENCE:
+                    p = SimParams(rtol=rtol, atol=atol, solver="tsit5", max_steps_per_sample=args.ref_budget)
+                else:
+                    p = SimParams(rtol=rtol, atol=atol, solver=args.solver)
                 t0 = time.perf_counter()
                 res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
                 runs[(rtol, atol)] = (res, time.perf_counter() - t0)
@@ -93,6 +101,7 @@ def main():
                       f"{wall:7.2f} {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} | {mdevs[0]:20.1e} {mdevs[1]:8.1e} "
                       f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'}",
                       flush=True)
+        jax.clear_caches()  # each case compiles its own programs: return their code mappings
     print("largest relative deviation from the reference, any metric: per seed | of the seed means")
     for (rtol, atol), w in worst.items():
         print(f"  rtol {rtol:.0e} atol {atol:.0e}: {w:.2e} | {worst_mean[(rtol, atol)]:.2e}")
