@@ -8,7 +8,7 @@ What is compared, per case and controller (scenarios and IK joint references fro
 ``redman_jax._pipeline.build_case``, the study's seeds ``1..seeds``):
 
 * **JAX**: ``simulate_batch`` over all seeds in one ``jit(vmap)`` call, default ``SimParams()``
-  (Tsit5, rtol 1e-5, atol 1e-7, one horizon solve with the sample boundaries as jump times).
+  (Dopri5, rtol 1e-5, atol 1e-7, one horizon solve with the sample boundaries as jump times).
   *Cold* is the first call (tracing + compilation + run), *warm* the second call.
 * **NumPy + SciPy**: the closed loop re-implemented below in plain NumPy (nothing jitted, no JAX
   call inside the vector field): forward kinematics, Jacobians, ``J_dot q_dot``, mass matrix and
@@ -34,9 +34,9 @@ What is compared, per case and controller (scenarios and IK joint references fro
 
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
 vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (n - 1)`` per member for the
-FSAL Tsit5 restarted after each of the run's ``n - 1`` jumps, ``n`` its valid samples; a counting callback, ``--exact-evals``,
-finds about 1 % more; SciPy: counted), and the speed-up of JAX (20 seeds in one call) over SciPy
-(one seed at a time) per simulated second.
+FSAL Dopri5 restarted after each of the run's ``n - 1`` jumps, ``n`` its valid samples; a counting
+callback, ``--exact-evals``, finds about 1 % more; SciPy: counted), and the speed-up of JAX (20
+seeds in one call) over SciPy (one seed at a time) per simulated second.
 """
 
 from __future__ import annotations
@@ -516,7 +516,7 @@ def time_jax(arm, scen, ik, name, params):
 
 
 def jax_evals(res, N, uses_guidance, params):
-    """Vector-field evaluations per member: FSAL Tsit5 costs 6 per attempted step plus one at the
+    """Vector-field evaluations per member: FSAL Dopri5 or Tsit5 costs 6 per attempted step plus one at the
     start and after every jump (horizon mode: the boundaries of the run's valid samples, none in
     the padding up to the capacity ``N``; gradient runs: every sample end of the 6 s horizon)."""
     steps = np.asarray(res.n_steps, float)
@@ -586,7 +586,7 @@ def main(argv=None):
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()}), numpy {np.__version__}, "
           f"scipy {scipy.__version__}, x64={jax.config.jax_enable_x64}")
-    print(f"JAX: simulate_batch over {args.seeds} seeds, Tsit5 rtol {rtol:g} atol {atol:g}, one horizon solve "
+    print(f"JAX: simulate_batch over {args.seeds} seeds, {params.solver} rtol {rtol:g} atol {atol:g}, one horizon solve "
           f"(gradient: one stepping loop over its {params.guidance_samples}-sample horizon); "
           f"cold = first call incl. compilation, warm = second call.")
     K = args.scipy_samples

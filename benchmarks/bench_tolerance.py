@@ -9,7 +9,7 @@ plus the relative deviation of the seed means (what the study's tables report), 
 success / collision / joint-limit flags agree seed by seed. Wall times are of one call each (the
 reference's and the first candidate's include their compilations).
 
-``--solver`` picks the candidates' solver (default the simulator's, Dopri5); the reference is always
+``--solver`` picks the candidates' solver (default the simulator's ``auto``); the reference is always
 Tsit5 at rtol 1e-9 / atol 1e-11, so a candidate solver is checked against another method.
 
 Run: ``python benchmarks/bench_tolerance.py [--dof 9] [--seeds 1-4] [--cases ...] [--controllers ...]

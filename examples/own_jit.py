@@ -17,7 +17,7 @@ states, ``L(k_p) = mean_{b,k} |p_d[k] - p(q_b(t_{k+1}))|^2``; ``dL/dk_p`` comes 
 ``jax.grad`` through the scan and is compared with a central difference of ``L`` (the same
 compiled function, so no recompilation: the gain is an array).
 
-``--check`` also runs :func:`redman_jax.simulate` (adaptive Tsit5) on the same reference from
+``--check`` also runs :func:`redman_jax.simulate` (adaptive Dopri5) on the same reference from
 the nominal start as an independent reference for the RK4 loop.
 
 Run (full: 9-DOF arm, 16 initial states, 3 s, with the cross-check)::
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
                            seed=jnp.asarray(0), seed_used=jnp.asarray(0), valid=jnp.asarray(True))
         res = rj.simulate(arm, scen, controller, gains0)
         dev = np.linalg.norm(np.asarray(res.p) - np.asarray(p[0]), axis=-1)
-        print(f"cross-check vs redman_jax.simulate (Tsit5, rtol 1e-5): max |p_rk4 - p_sim| = "
+        print(f"cross-check vs redman_jax.simulate (Dopri5, rtol 1e-5): max |p_rk4 - p_sim| = "
               f"{1e3 * dev.max():.4f} mm over {N} samples")
         summary["max_dev_vs_simulate_m"] = float(dev.max())
 

@@ -9,7 +9,7 @@ Steps:
    goal not reached) moves on to ``seed + 1000`` (thesis 3.4), at most ``--max-retries`` times.
 2. :func:`redman_jax.validate_ik` re-checks the accepted IK trajectory independently (from its
    joint path only).
-3. :func:`redman_jax.simulate` runs the closed loop (adaptive Tsit5, reference held per sample)
+3. :func:`redman_jax.simulate` runs the closed loop (adaptive Dopri5, reference held per sample)
    with ``VelocityOSC`` (operational space, needs no IK) and ``JointSpaceID`` (tracks the IK's
    joint trajectory ``q, qd, qdd``).
 4. The metrics are printed as a table, written to ``DIR/metrics.json``, and ``DIR/single_scenario.png``

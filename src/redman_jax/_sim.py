@@ -35,13 +35,25 @@ loop from the host in calls of 512 iterations and moves its last stragglers to a
 (``SimParams.compact``; 8-DOF warehouse, 20 seeds: 2.0x less run time). ``mode="per_sample"`` runs
 them as the scan of per-sample solves, which is differentiable.
 
-Default solver: ``Tsit5`` with ``rtol = 1e-5``, ``atol = 1e-7`` (SPEC U9: adaptive, non-stiff, a
-little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6). Evidence (``benchmarks/
-bench_tolerance.py``, 9-DOF arm, against a reference at rtol 1e-9 / atol 1e-11): the study's
-metrics deviate by at most 1.5e-4 relative in inspection and welding (seeds 1-4, three tracking
-controllers), 3.4e-5 in warehouse for the tracking controllers and 7.3e-3 for the gradient-guided
-final position (seeds 1-2), with every success, collision and joint-limit flag equal. The warehouse
-acceleration reference needs ``--ref-budget 1024``: it takes 83,423 steps.
+Default solver (``SimParams.solver="auto"``): ``Dopri5`` for trajectory runs, ``Tsit5`` for
+gradient-guided runs, both with ``rtol = 1e-5``, ``atol = 1e-7`` (SPEC U9: adaptive, non-stiff, a
+little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6). SPEC U9 proposes Tsit5 throughout; on
+the study's trajectory runs Dopri5 (same 6 evaluations per step, FSAL) needs fewer steps at the same
+tolerances (``benchmarks/bench_solvers.py``, 9-DOF arm, seeds 1-4, batch maximum): warehouse
+velocity / acceleration OSC 2,212 / 2,584 against 4,118 / 4,746 steps, agriculture 2,577 / 4,921
+against 3,639 / 7,151, simple 3,557 / 3,437 against 3,971 / 4,056, joint space within 1 % there;
+inspection joint space is the one row where it takes more (1,264 against 1,125). On gradient-guided
+runs it was not better (warehouse 6,785 against 6,598 steps at the batch maximum, slower wall
+time) and its goal-stop metric deviated more from the reference (simple: 1.2e-2 per seed), so those
+keep Tsit5. Welding was not compared. Accuracy (``benchmarks/bench_tolerance.py``, against a Tsit5
+reference at rtol 1e-9 / atol 1e-11): with Dopri5 the study's metrics of the trajectory runs
+deviate by at most 6.1e-4 relative per seed in simple and agriculture (seeds 1-4) and 2.3e-5 in
+warehouse (seeds 1-2), every success, collision and joint-limit flag equal (inspection and welding
+not re-measured); with Tsit5 (the guided runs' solver, and the earlier default) at most 1.5e-4 in
+inspection and welding, 3.4e-5 in warehouse for the tracking controllers, 3.6e-3 for the
+agriculture velocity OSC, and 7.3e-3 / 1.4e-2 for the gradient-guided final position in warehouse /
+agriculture (its stop rule moves by a sample). The warehouse acceleration reference needs
+``--ref-budget 1024``: it takes about 83,500 steps.
 
 **Adjoint.** ``RecursiveCheckpointAdjoint`` (discretise-then-optimise): gradients are exact for the
 computed discrete trajectory, memory is bounded by binomial checkpointing over ``max_steps``,
@@ -104,7 +116,9 @@ class SimParams(eqx.Module):
       on within this distance of the goal for the gradient-guided controller (0.5 m [T]).
     * ``lme_mu``, ``lme_max_jump``: local-minima estimator regularisation and largest accepted step
       (U8: 1e-6, 2 m).
-    * static ``solver``: ``"tsit5"`` (default), ``"dopri5"``, ``"dopri8"``, ``"bosh3"``;
+    * static ``solver``: ``"auto"`` (default: ``"dopri5"`` for trajectory runs, ``"tsit5"`` for
+      gradient-guided runs; see the module docstring), ``"dopri5"``, ``"tsit5"``, ``"dopri8"``,
+      ``"bosh3"``;
       ``mode``: ``"horizon"`` or ``"per_sample"`` (see the module docstring);
       ``adjoint``: ``"recursive"`` (default), ``"direct"``, ``"backsolve"``;
       ``max_steps_per_sample``: step budget per sample (``max_steps = N *`` this);
@@ -135,7 +149,7 @@ class SimParams(eqx.Module):
     lme_mu: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
     lme_max_jump: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
     field: PyTree = None
-    solver: str = eqx.field(static=True, default="tsit5")
+    solver: str = eqx.field(static=True, default="auto")
     mode: str = eqx.field(static=True, default="horizon")
     adjoint: str = eqx.field(static=True, default="recursive")
     max_steps_per_sample: int = eqx.field(static=True, default=64)
@@ -152,8 +166,9 @@ class SimParams(eqx.Module):
                                                 or self.slots_per_step < 1):
             raise ValueError(f"SimParams.slots_per_step: expected None (auto) or a positive int, "
                              f"got {self.slots_per_step!r}")
-        if self.solver not in _SOLVERS:
-            raise ValueError(f"SimParams.solver: expected one of {sorted(_SOLVERS)}, got {self.solver!r}")
+        if self.solver != "auto" and self.solver not in _SOLVERS:
+            raise ValueError(f"SimParams.solver: expected 'auto' or one of {sorted(_SOLVERS)}, "
+                             f"got {self.solver!r}")
         if self.mode not in ("horizon", "per_sample"):
             raise ValueError(f"SimParams.mode: expected 'horizon' or 'per_sample', got {self.mode!r}")
         if self.adjoint not in ("recursive", "direct", "backsolve"):
@@ -350,8 +365,13 @@ def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, p
     return _Y(q=gate(y.qd), qd=gate(qdd), z=jax.tree.map(gate, dz), f=f)
 
 
-def _make_solver(params: SimParams):
-    return _SOLVERS[params.solver]()
+def _make_solver(params: SimParams, controller):
+    """``params.solver``; ``"auto"``: Dopri5 for trajectory runs, Tsit5 for gradient-guided ones
+    (measured, see the module docstring)."""
+    name = params.solver
+    if name == "auto":
+        name = "tsit5" if controller.uses_guidance else "dopri5"
+    return _SOLVERS[name]()
 
 
 def _make_adjoint(params: SimParams):
@@ -446,7 +466,7 @@ def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=N
 
     saveat = diffrax.SaveAt(ts=ends if save_ts is None else save_ts, dense=dense)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf), _make_solver(params), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
+        diffrax.ODETerm(vf), _make_solver(params, controller), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
         saveat=saveat, stepsize_controller=_pid(params, jump_ts=jumps if N > 1 else None, ends=step_ends),
         adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample * N, throw=False)
     stats = (sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
@@ -469,7 +489,7 @@ def _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0, active, params
         return _closed_loop(t, yy, rs, env, active, arm, controller, gains, params)
 
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf), _make_solver(params), t0=t0, t1=t1, dt0=dt0, y0=y,
+        diffrax.ODETerm(vf), _make_solver(params, controller), t0=t0, t1=t1, dt0=dt0, y0=y,
         saveat=diffrax.SaveAt(t1=True), stepsize_controller=_pid(params),
         adjoint=_make_adjoint(params), max_steps=_PER_SOLVE_FACTOR * params.max_steps_per_sample,
         throw=False)
@@ -527,7 +547,7 @@ def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params,
 
     dtype = scenario.goal_p.dtype
     n = arm.n_dof
-    solver = _make_solver(params)
+    solver = _make_solver(params, controller)
     pid = _pid(params)
     on = jnp.asarray(True)
 
@@ -624,15 +644,15 @@ def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params,
 def _solve_guided_stepper(arm, controller, gains, scenario, env0, y0, fparams, params, N, ts):
     """Gradient-guided run as *one* adaptive integration over ``[0, N t_s]`` (``mode="horizon"``).
 
-    diffrax's ``Tsit5`` step and ``PIDController`` driven by our own ``lax.while_loop``, so that
-    the discrete update at every sample start (estimator -> virtual-obstacle buffer, orientation
-    latch; thesis 3.24-3.27) can be applied between two steps: a step never straddles a sample end
-    (the rest of a sample is split into equal steps, as ``_EvenSplit`` does), and after the step
-    that lands on an end the buffer is updated from the state there and the first stage is
-    re-evaluated (``made_jump``), exactly as the per-sample solves restart. The step size proposed
-    by the PID controller carries across the sample ends (a per-sample solve restarts from the
-    previous sample's mean step instead), so the steps differ from ``mode="per_sample"`` only at
-    the tolerance level.
+    diffrax's solver step (``params.solver``) and ``PIDController`` driven by our own
+    ``lax.while_loop``, so that the discrete update at every sample start (estimator ->
+    virtual-obstacle buffer, orientation latch; thesis 3.24-3.27) can be applied between two steps:
+    a step never straddles a sample end (the rest of a sample is split into equal steps, as
+    ``_EvenSplit`` does), and after the step that lands on an end the buffer is updated from the
+    state there and the first stage is re-evaluated (``made_jump``), exactly as the per-sample
+    solves restart. The step size proposed by the PID controller carries across the sample ends (a
+    per-sample solve restarts from the previous sample's mean step instead), so the steps differ
+    from ``mode="per_sample"`` only at the tolerance level.
 
     A member stops at the stop rule (the goal error below ``goal_radius`` at ``hold_samples``
     consecutive sample ends, :func:`~redman_jax._metrics.guidance_termination`): what comes after
