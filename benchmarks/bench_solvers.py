@@ -28,15 +28,9 @@ import numpy as np
 
 import redman_jax as rj
 from redman_jax._cli import parse_int_list
-from redman_jax._controllers import CONTROLLERS
-from redman_jax._pipeline import build_case
 from redman_jax._sim import SimParams
-from redman_jax._study import GRADIENT_CASES
 
-
-def _rel(a, b):
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-9)))
+from bench_tolerance import max_rel_dev, study_closed_loops  # the same runs, the same comparison
 
 
 def main():
@@ -54,36 +48,28 @@ def main():
     print(f"{'case':12s} {'controller':13s} {'solver':7s} {'steps max':>9s} {'mean':>7s} {'warm s':>7s} "
           f"{'time ratio':>10s} {'metrics vs ' + solvers[0]:>17s} flags")
     totals = {s: [0, 0.0] for s in solvers}
-    for case in args.cases.split(","):
-        built = build_case(arm, case, seeds)
-        scen, ik = built["scenarios"], built["ik"]
-        for name in args.controllers.split(","):
-            if name == "gradient" and case not in GRADIENT_CASES:
-                continue
-            ctrl = CONTROLLERS[name]()
-            gains = ctrl.default_gains()
-            ikarg = ik if ctrl.needs_joint_reference else None
-            first = None
-            for solver in solvers:
-                p = SimParams(solver=solver)
-                jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
-                t0 = time.perf_counter()
-                res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
-                wall = time.perf_counter() - t0
-                m = res.metrics
-                if first is None:
-                    first = (m, wall)
-                dev = max(_rel(getattr(m, f), getattr(first[0], f))
-                          for f in ("mean_pos_err", "mean_ori_err", "final_pos_err"))
-                flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(first[0], f)))
-                            for f in ("success", "collided", "joint_limit"))
-                steps = np.asarray(res.n_steps)
-                totals[solver][0] += int(np.sum(steps))
-                totals[solver][1] += wall
-                print(f"{case:12s} {name:13s} {solver:7s} {int(steps.max()):9d} {float(steps.mean()):7.0f} "
-                      f"{wall:7.2f} {wall / first[1]:10.2f} {dev:17.1e} {'same' if flags else 'DIFFER'}",
-                      flush=True)
-        jax.clear_caches()  # each case compiles its own programs: return their code mappings
+    for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
+            arm, args.cases.split(","), args.controllers.split(","), seeds):
+        first = None
+        for solver in solvers:
+            p = SimParams(solver=solver)
+            jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
+            t0 = time.perf_counter()
+            res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
+            wall = time.perf_counter() - t0
+            m = res.metrics
+            if first is None:
+                first = (m, wall)
+            dev = max(max_rel_dev(getattr(m, f), getattr(first[0], f))
+                      for f in ("mean_pos_err", "mean_ori_err", "final_pos_err"))
+            flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(first[0], f)))
+                        for f in ("success", "collided", "joint_limit"))
+            steps = np.asarray(res.n_steps)
+            totals[solver][0] += int(np.sum(steps))
+            totals[solver][1] += wall
+            print(f"{case:12s} {name:13s} {solver:7s} {int(steps.max()):9d} {float(steps.mean()):7.0f} "
+                  f"{wall:7.2f} {wall / first[1]:10.2f} {dev:17.1e} {'same' if flags else 'DIFFER'}",
+                  flush=True)
     print("all rows: total steps (summed over members) and warm wall time")
     for s, (n, w) in totals.items():
         print(f"  {s:7s} {n:10d} steps  {w:8.2f} s  (ratio to {solvers[0]}: steps "

@@ -35,13 +35,29 @@ CANDIDATES = ((1e-5, 1e-7), (1e-4, 1e-6))
 REFERENCE = (1e-9, 1e-11)
 
 
-def _rel(a, b):
+def max_rel_dev(a, b):
     a, b = np.asarray(a, float), np.asarray(b, float)
     return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-9)))
 
 
+def study_closed_loops(arm, cases, controllers, seeds):
+    """``(case, name, controller, gains, scenarios, ik)`` for every case and controller of the study
+    (``gradient`` on its cases only), the scenarios and IK from the study's ``build_case``
+    (``ik`` None for controllers that need no joint reference); JAX's caches are cleared after
+    each case: each compiles its own programs, and keeping them all ran out of code mappings."""
+    for case in cases:
+        built = build_case(arm, case, seeds)
+        for name in controllers:
+            if name == "gradient" and case not in GRADIENT_CASES:
+                continue
+            ctrl = CONTROLLERS[name]()
+            ik = built["ik"] if ctrl.needs_joint_reference else None
+            yield case, name, ctrl, ctrl.default_gains(), built["scenarios"], ik
+        jax.clear_caches()
+
+
 def _rel_mean(a, b):
-    return _rel(np.mean(np.asarray(a, float)), np.mean(np.asarray(b, float)))
+    return max_rel_dev(np.mean(np.asarray(a, float)), np.mean(np.asarray(b, float)))
 
 
 def main():
@@ -62,46 +78,38 @@ def main():
           f"{'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} | seed means: {'pos':>8s} {'ori':>8s} {'final':>8s} flags")
     worst = {c: 0.0 for c in CANDIDATES}
     worst_mean = {c: 0.0 for c in CANDIDATES}
-    for case in args.cases.split(","):
-        built = build_case(arm, case, seeds)
-        scen, ik = built["scenarios"], built["ik"]
-        for name in args.controllers.split(","):
-            if name == "gradient" and case not in GRADIENT_CASES:
-                continue
-            ctrl = CONTROLLERS[name]()
-            gains = ctrl.default_gains()
-            ikarg = ik if ctrl.needs_joint_reference else None
-            runs = {}
-            for rtol, atol in (REFERENCE,) + CANDIDATES:
-                if (rtol, atol) == REFERENCE:
-                    p = SimParams(rtol=rtol, atol=atol, solver="tsit5", max_steps_per_sample=args.ref_budget)
-                else:
-                    p = SimParams(rtol=rtol, atol=atol, solver=args.solver)
-                t0 = time.perf_counter()
-                res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
-                runs[(rtol, atol)] = (res, time.perf_counter() - t0)
-            ref = runs[REFERENCE][0].metrics
-            ref_ok = bool(np.all(np.isfinite(np.asarray(ref.final_pos_err))))
-            if not ref_ok:  # the reference ran out of its step budget (or diverged): no evidence
-                print(f"{case:12s} {name:13s} reference incomplete for seeds "
-                      f"{[s for s, f in zip(seeds, np.asarray(ref.final_pos_err)) if not np.isfinite(f)]} "
-                      f"(step budget {args.ref_budget}/sample; raise --ref-budget); row left out of the summary")
-            for key, (res, wall) in runs.items():
-                m = res.metrics
-                devs = (_rel(m.mean_pos_err, ref.mean_pos_err), _rel(m.mean_ori_err, ref.mean_ori_err),
-                        _rel(m.final_pos_err, ref.final_pos_err))
-                mdevs = (_rel_mean(m.mean_pos_err, ref.mean_pos_err), _rel_mean(m.mean_ori_err, ref.mean_ori_err),
-                         _rel_mean(m.final_pos_err, ref.final_pos_err))
-                flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
-                            for f in ("success", "collided", "joint_limit"))
-                if key in worst and ref_ok:
-                    worst[key] = max(worst[key], *devs)
-                    worst_mean[key] = max(worst_mean[key], *mdevs)
-                print(f"{case:12s} {name:13s} {key[0]:.0e}/{key[1]:.0e} {int(np.max(res.n_steps)):7d} "
-                      f"{wall:7.2f} {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} | {mdevs[0]:20.1e} {mdevs[1]:8.1e} "
-                      f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'}",
-                      flush=True)
-        jax.clear_caches()  # each case compiles its own programs: return their code mappings
+    for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
+            arm, args.cases.split(","), args.controllers.split(","), seeds):
+        runs = {}
+        for rtol, atol in (REFERENCE,) + CANDIDATES:
+            if (rtol, atol) == REFERENCE:
+                p = SimParams(rtol=rtol, atol=atol, solver="tsit5", max_steps_per_sample=args.ref_budget)
+            else:
+                p = SimParams(rtol=rtol, atol=atol, solver=args.solver)
+            t0 = time.perf_counter()
+            res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
+            runs[(rtol, atol)] = (res, time.perf_counter() - t0)
+        ref = runs[REFERENCE][0].metrics
+        ref_ok = bool(np.all(np.isfinite(np.asarray(ref.final_pos_err))))
+        if not ref_ok:  # the reference ran out of its step budget (or diverged): no evidence
+            print(f"{case:12s} {name:13s} reference incomplete for seeds "
+                  f"{[s for s, f in zip(seeds, np.asarray(ref.final_pos_err)) if not np.isfinite(f)]} "
+                  f"(step budget {args.ref_budget}/sample; raise --ref-budget); row left out of the summary")
+        for key, (res, wall) in runs.items():
+            m = res.metrics
+            devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f))
+                         for f in ("mean_pos_err", "mean_ori_err", "final_pos_err"))
+            mdevs = (_rel_mean(m.mean_pos_err, ref.mean_pos_err), _rel_mean(m.mean_ori_err, ref.mean_ori_err),
+                     _rel_mean(m.final_pos_err, ref.final_pos_err))
+            flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
+                        for f in ("success", "collided", "joint_limit"))
+            if key in worst and ref_ok:
+                worst[key] = max(worst[key], *devs)
+                worst_mean[key] = max(worst_mean[key], *mdevs)
+            print(f"{case:12s} {name:13s} {key[0]:.0e}/{key[1]:.0e} {int(np.max(res.n_steps)):7d} "
+                  f"{wall:7.2f} {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} | {mdevs[0]:20.1e} {mdevs[1]:8.1e} "
+                  f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'}",
+                  flush=True)
     print("largest relative deviation from the reference, any metric: per seed | of the seed means")
     for (rtol, atol), w in worst.items():
         print(f"  rtol {rtol:.0e} atol {atol:.0e}: {w:.2e} | {worst_mean[(rtol, atol)]:.2e}")
