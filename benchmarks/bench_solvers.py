@@ -30,15 +30,11 @@ import redman_jax as rj
 from redman_jax._cli import parse_int_list
 from redman_jax._sim import SimParams
 
-from bench_tolerance import max_rel_dev, study_closed_loops  # the same runs, the same comparison
+from bench_tolerance import max_rel_dev, study_arguments, study_closed_loops  # the same runs
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--dof", type=int, default=9)
-    ap.add_argument("--seeds", default="1-4")
-    ap.add_argument("--cases", default=",".join(rj.CASES))
-    ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient")
+    ap = study_arguments(argparse.ArgumentParser())
     ap.add_argument("--solvers", default="tsit5,dopri5")
     args = ap.parse_args()
     arm = rj.thesis_arm(args.dof)

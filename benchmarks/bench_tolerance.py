@@ -60,12 +60,17 @@ def _rel_mean(a, b):
     return max_rel_dev(np.mean(np.asarray(a, float)), np.mean(np.asarray(b, float)))
 
 
-def main():
-    ap = argparse.ArgumentParser()
+def study_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options that pick the runs of :func:`study_closed_loops`: arm, seeds, cases, controllers."""
     ap.add_argument("--dof", type=int, default=9)
     ap.add_argument("--seeds", default="1-4")
     ap.add_argument("--cases", default=",".join(rj.CASES))
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient")
+    return ap
+
+
+def main():
+    ap = study_arguments(argparse.ArgumentParser())
     ap.add_argument("--solver", default=SimParams().solver, help="the candidates' solver")
     ap.add_argument("--ref-budget", type=int, default=256,
                     help="reference step budget per sample (max_steps = samples x this)")
