@@ -30,7 +30,7 @@ import redman_jax as rj
 from redman_jax._cli import parse_int_list
 from redman_jax._sim import SimParams
 
-from bench_tolerance import max_rel_dev, study_arguments, study_closed_loops  # the same runs
+from bench_tolerance import FLAGS, METRICS, max_rel_dev, study_arguments, study_closed_loops
 
 
 def main():
@@ -57,9 +57,9 @@ def main():
             if first is None:
                 first = (m, wall)
             dev = max(max_rel_dev(getattr(m, f), getattr(first[0], f))
-                      for f in ("mean_pos_err", "mean_ori_err", "final_pos_err"))
+                      for f in METRICS)
             flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(first[0], f)))
-                        for f in ("success", "collided", "joint_limit"))
+                        for f in FLAGS)
             steps = np.asarray(res.n_steps)
             totals[solver][0] += int(np.sum(steps))
             totals[solver][1] += wall

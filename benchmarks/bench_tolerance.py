@@ -33,6 +33,8 @@ from redman_jax._study import GRADIENT_CASES
 
 CANDIDATES = ((1e-5, 1e-7), (1e-4, 1e-6))
 REFERENCE = (1e-9, 1e-11)
+METRICS = ("mean_pos_err", "mean_ori_err", "final_pos_err")  # compared as relative deviations
+FLAGS = ("success", "collided", "joint_limit")  # compared seed by seed
 
 
 def max_rel_dev(a, b):
@@ -103,11 +105,11 @@ def main():
         for key, (res, wall) in runs.items():
             m = res.metrics
             devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f))
-                         for f in ("mean_pos_err", "mean_ori_err", "final_pos_err"))
+                         for f in METRICS)
             mdevs = (_rel_mean(m.mean_pos_err, ref.mean_pos_err), _rel_mean(m.mean_ori_err, ref.mean_ori_err),
                      _rel_mean(m.final_pos_err, ref.final_pos_err))
             flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
-                        for f in ("success", "collided", "joint_limit"))
+                        for f in FLAGS)
             if key in worst and ref_ok:
                 worst[key] = max(worst[key], *devs)
                 worst_mean[key] = max(worst_mean[key], *mdevs)
