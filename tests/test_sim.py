@@ -382,12 +382,14 @@ def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():
     import diffrax
 
     from redman_jax._controllers import GradientGuided
-    from redman_jax._sim import _make_solver
+    from redman_jax._sim import _make_solver, solver_name
 
     auto = SimParams()
     assert auto.solver == "auto"
-    assert type(_make_solver(auto, CTRL)) is diffrax.Dopri5
+    assert type(_make_solver(auto, CTRL)) is diffrax.Dopri5 and solver_name(auto, CTRL) == "dopri5"
     assert type(_make_solver(auto, GradientGuided())) is diffrax.Tsit5
+    assert solver_name(auto, GradientGuided()) == "tsit5"
     for name, cls in (("tsit5", diffrax.Tsit5), ("dopri5", diffrax.Dopri5), ("bosh3", diffrax.Bosh3)):
         for ctrl in (CTRL, GradientGuided()):
             assert type(_make_solver(SimParams(solver=name), ctrl)) is cls
+            assert solver_name(SimParams(solver=name), ctrl) == name

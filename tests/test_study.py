@@ -4,6 +4,7 @@ The pipeline units (build a case, run a controller) are replaced by cheap determ
 so these tests check the driver's bookkeeping; the real units are exercised by the examples tests.
 """
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -38,6 +39,7 @@ def test_parse_int_list():
         (["sweep", "--arms", "11"], "arms"),
         (["sweep", "--ts", "-1"], "ts"),
         (["sweep", "--gains", "/nonexistent/gains.json"], "--gains"),
+        (["sweep", "--solver", "euler"], "solver"),
     ],
 )
 def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):
@@ -51,7 +53,7 @@ def test_cli_help_exits_cleanly():
     proc = subprocess.run([sys.executable, "-m", "redman_jax", "sweep", "--help"], capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0
-    for opt in ("--arms", "--cases", "--seeds", "--controllers", "--gains", "--ts", "--out"):
+    for opt in ("--arms", "--cases", "--seeds", "--controllers", "--gains", "--ts", "--solver", "--out"):
         assert opt in proc.stdout
 
 
@@ -71,8 +73,10 @@ class _Interrupt(BaseException):
     pass
 
 
-def _fake_pipeline(monkeypatch, calls, interrupt_after=None):
-    """Deterministic stand-ins for the two pipeline units, counting calls."""
+def _fake_pipeline(monkeypatch, calls, interrupt_after=None, solvers=None):
+    """Deterministic stand-ins for the two pipeline units, counting calls (and recording the
+    ``SimParams.solver`` each simulation unit is given in ``solvers``)."""
+    solvers = [] if solvers is None else solvers
 
     def build_case(arm, case, seeds, ts=0.01, max_retries=20):
         calls.append(("scen", case))
@@ -80,6 +84,7 @@ def _fake_pipeline(monkeypatch, calls, interrupt_after=None):
 
     def run_controller(arm, scen, ctrl, gains=None, **kw):
         calls.append(("run", scen["case"], ctrl))
+        solvers.append(kw["sim_params"].solver)
         if interrupt_after is not None and len([c for c in calls if c[0] == "run"]) > interrupt_after:
             raise _Interrupt()
         rng = np.random.default_rng(zlib.crc32(f"{scen['case']}-{ctrl}".encode()))
@@ -182,12 +187,43 @@ def test_changed_configuration_recomputes(monkeypatch, tmp_path):
     assert calls == [("run", "welding", "velocity"), ("run", "simple", "velocity")]
 
 
+def test_solver_choice_reaches_the_runs_and_keys_them_by_the_solver_used(monkeypatch, tmp_path):
+    """``--solver``: each simulation unit gets ``SimParams(solver=...)``; the unit's key holds the
+    solver it resolves to, so a folder computed with another solver recomputes exactly the runs
+    whose solver changed (``auto`` is Dopri5 for trajectory runs, Tsit5 for guided ones) and keeps
+    the scenario builds."""
+    calls, solvers = [], []
+    _fake_pipeline(monkeypatch, calls, solvers=solvers)
+    run_sweep(_config(tmp_path))
+    assert solvers == ["auto"] * 3
+    velocity = [("run", "welding", "velocity"), ("run", "simple", "velocity")]
+    for solver, recomputed in [("tsit5", velocity),  # the guided unit was Tsit5 already
+                               ("auto", velocity),
+                               ("dopri5", [("run", "simple", "gradient")]),  # auto's for velocity
+                               ("dopri5", [])]:
+        calls.clear(), solvers.clear()
+        run_sweep(dataclasses.replace(_config(tmp_path), solver=solver))
+        assert calls == recomputed, solver
+        assert solvers == [solver] * len(recomputed)
+    assert json.loads((tmp_path / "config.json").read_text())["solver"] == "dopri5"
+    with pytest.raises(ValueError, match="solver"):
+        SweepConfig(solver="euler")
+
+
+def test_cli_solver_help_names_the_simulators_choices():
+    from redman_jax._cli import build_parser
+    from redman_jax._sim import SOLVER_CHOICES
+
+    sweep = build_parser()._subparsers._group_actions[0].choices["sweep"]
+    (action,) = [a for a in sweep._actions if a.dest == "solver"]
+    assert action.default == "auto"
+    assert all(name in action.help for name in SOLVER_CHOICES)
+
+
 def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     """``jobs=2``: the (arm, case) groups run in two spawned worker processes, each pinned to a core
     of its own where the machine has two; every unit is computed once, the table equals the
     one-process sweep, and a rerun computes nothing."""
-    import dataclasses
-
     import _fake_units
 
     from redman_jax._study import _worker_cores

@@ -63,6 +63,10 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
         p.add_argument("--gains", default=None,
                        help="JSON file of gain overrides {controller: {gain: value}} (e.g. from `tune`)")
         p.add_argument("--ts", type=float, default=0.01, help="sample time in seconds (default 0.01)")
+        p.add_argument("--solver", default="auto",
+                       help="ODE solver of the simulations: auto, tsit5, dopri5, dopri8 or bosh3 (default "
+                            "auto: dopri5 for the trajectory controllers, tsit5 for gradient-guided; "
+                            "rtol 1e-5, atol 1e-7 either way)")
     p.add_argument("--max-retries", type=int, default=20,
                    help="IK-validation retries per seed (seed + 1000 k; default 20)")
     p.add_argument("--jobs", default="auto",

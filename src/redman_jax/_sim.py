@@ -166,8 +166,8 @@ class SimParams(eqx.Module):
                                                 or self.slots_per_step < 1):
             raise ValueError(f"SimParams.slots_per_step: expected None (auto) or a positive int, "
                              f"got {self.slots_per_step!r}")
-        if self.solver != "auto" and self.solver not in _SOLVERS:
-            raise ValueError(f"SimParams.solver: expected 'auto' or one of {sorted(_SOLVERS)}, "
+        if self.solver not in SOLVER_CHOICES:
+            raise ValueError(f"SimParams.solver: expected one of {list(SOLVER_CHOICES)}, "
                              f"got {self.solver!r}")
         if self.mode not in ("horizon", "per_sample"):
             raise ValueError(f"SimParams.mode: expected 'horizon' or 'per_sample', got {self.mode!r}")
@@ -184,6 +184,7 @@ _SOLVERS = {
     "dopri8": diffrax.Dopri8,
     "bosh3": diffrax.Bosh3,
 }
+SOLVER_CHOICES = ("auto", *_SOLVERS)  # what ``SimParams.solver`` (and ``sweep --solver``) accepts
 
 
 class JointReference(eqx.Module):
@@ -365,13 +366,17 @@ def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, p
     return _Y(q=gate(y.qd), qd=gate(qdd), z=jax.tree.map(gate, dz), f=f)
 
 
+def solver_name(params: SimParams, controller) -> str:
+    """The solver ``params.solver`` selects for ``controller``: the name itself, or for ``"auto"``
+    ``"dopri5"`` for trajectory runs and ``"tsit5"`` for gradient-guided ones (measured, see the
+    module docstring)."""
+    if params.solver == "auto":
+        return "tsit5" if controller.uses_guidance else "dopri5"
+    return params.solver
+
+
 def _make_solver(params: SimParams, controller):
-    """``params.solver``; ``"auto"``: Dopri5 for trajectory runs, Tsit5 for gradient-guided ones
-    (measured, see the module docstring)."""
-    name = params.solver
-    if name == "auto":
-        name = "tsit5" if controller.uses_guidance else "dopri5"
-    return _SOLVERS[name]()
+    return _SOLVERS[solver_name(params, controller)]()
 
 
 def _make_adjoint(params: SimParams):

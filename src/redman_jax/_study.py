@@ -9,7 +9,9 @@ Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
    and controller, the batch sharded over every JAX device), the cases with few obstacle slots
    padded to common shapes so that one compilation per arm and controller serves them
    (:func:`~redman_jax._pipeline.study_shapes`);
-4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing).
+4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing:
+   a unit is keyed by its configuration, a simulation also by the solver it integrates with, so
+   ``--solver`` or a change of the default recomputes the runs it affects and nothing else).
 
 ``jobs > 1`` runs the groups in that many worker processes (``spawn``): first the builds (one
 group per arm and case), then the simulations (one group per arm and controller, its cases in one
@@ -92,6 +94,7 @@ class SweepConfig:
     gains: dict | None = None
     ts: float = 0.01
     max_retries: int = 20
+    solver: str = "auto"
     figures: bool = True
     progress: bool = True
     jobs: int = 1
@@ -111,6 +114,10 @@ class SweepConfig:
             raise ValueError(f"ts: sample time must be in (0, 0.1] s, got {self.ts}")
         if not isinstance(self.jobs, int) or self.jobs < 1:
             raise ValueError(f"jobs: need a positive number of worker processes, got {self.jobs!r}")
+        from ._sim import SOLVER_CHOICES
+
+        if self.solver not in SOLVER_CHOICES:
+            raise ValueError(f"solver: unknown solver {self.solver!r}; choose from {list(SOLVER_CHOICES)}")
         if self.max_retries < 0:
             raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
         for a in self.arms:
@@ -140,7 +147,8 @@ class SweepConfig:
                 gains = json.loads(Path(args.gains).read_text())
             except (OSError, json.JSONDecodeError) as e:
                 raise ValueError(f"--gains: cannot read {args.gains!r}: {e}") from None
-        return cls(arms=arms, cases=cases, controllers=controllers, gains=gains, ts=args.ts, **common)
+        return cls(arms=arms, cases=cases, controllers=controllers, gains=gains, ts=args.ts,
+                   solver=args.solver, **common)
 
     def controllers_for(self, case: str) -> tuple[str, ...]:
         return tuple(c for c in self.controllers if c != "gradient" or case in self.gradient_cases)
@@ -158,9 +166,23 @@ def _scenario_key(cfg: SweepConfig, arm: str, case: str) -> str:
                         "max_retries": cfg.max_retries, "v": 1})
 
 
+def _sim_params(cfg: SweepConfig):
+    from ._sim import SimParams
+
+    return SimParams(solver=cfg.solver)
+
+
 def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
+    """The key of a simulation unit: its scenarios, controller, gains and the solver it integrates
+    with (resolved: ``"auto"`` names the solver it picks for ``ctrl``), so a results folder of
+    another solver (before ab7715f the trajectory runs used Tsit5) is recomputed, not mixed in."""
+    from ._controllers import CONTROLLERS
+    from ._sim import solver_name
+
     gains = (cfg.gains or {}).get(ctrl)
-    return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains, "v": 1})
+    solver = solver_name(_sim_params(cfg), CONTROLLERS[ctrl]())
+    return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains,
+                        "solver": solver, "v": 1})
 
 
 def _jobs(value) -> int:
@@ -274,6 +296,7 @@ def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
         scen = store.load(f"scen_{_arm_label(arm_spec)}_{case}")
         cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
         payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl),
+                                      sim_params=_sim_params(cfg),
                                       shapes=pipe.study_shapes(cases, cfg.ts)[case])
         payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
     store.save(name, key, payload)
