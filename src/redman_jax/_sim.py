@@ -45,7 +45,14 @@ against 3,639 / 7,151, simple 3,557 / 3,437 against 3,971 / 4,056, joint space w
 inspection joint space is the one row where it takes more (1,264 against 1,125). On gradient-guided
 runs it was not better (warehouse 6,785 against 6,598 steps at the batch maximum, slower wall
 time) and its goal-stop metric deviated more from the reference (simple: 1.2e-2 per seed), so those
-keep Tsit5. Welding was not compared. Accuracy (``benchmarks/bench_tolerance.py``, against a Tsit5
+keep Tsit5. Welding is a draw (joint space / velocity / acceleration 3,028 / 4,154 / 11,845 steps
+against 3,053 / 4,140 / 11,543). Over the whole study on identical scenarios (900 tracking runs,
+``redman-jax sweep --solver tsit5`` beside the default), Dopri5 takes 1.15x (velocity) and 1.12x
+(acceleration) fewer steps in all, joint space 1 % more; 2 runs change a flag: one touches a joint
+limit under Tsit5 only, and one (9-DOF agriculture, acceleration, seed 14) collides under Dopri5
+only. That run is sensitive to the integration error whatever the solver: against the reference
+below its final position deviates by 48 % with Dopri5 and 6.9 % with Tsit5, and the reference
+does not collide. Accuracy (``benchmarks/bench_tolerance.py``, against a Tsit5
 reference at rtol 1e-9 / atol 1e-11): with Dopri5 the study's metrics of the trajectory runs
 deviate by at most 6.1e-4 relative per seed in simple and agriculture (seeds 1-4) and 2.3e-5 in
 warehouse (seeds 1-2), every success, collision and joint-limit flag equal (inspection and welding
