@@ -56,8 +56,7 @@ def main():
             m = res.metrics
             if first is None:
                 first = (m, wall)
-            dev = max(max_rel_dev(getattr(m, f), getattr(first[0], f))
-                      for f in METRICS)
+            dev = max(max_rel_dev(getattr(m, f), getattr(first[0], f)) for f in METRICS)
             flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(first[0], f)))
                         for f in FLAGS)
             steps = np.asarray(res.n_steps)

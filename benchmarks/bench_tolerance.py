@@ -104,10 +104,8 @@ def main():
                   f"(step budget {args.ref_budget}/sample; raise --ref-budget); row left out of the summary")
         for key, (res, wall) in runs.items():
             m = res.metrics
-            devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f))
-                         for f in METRICS)
-            mdevs = (_rel_mean(m.mean_pos_err, ref.mean_pos_err), _rel_mean(m.mean_ori_err, ref.mean_ori_err),
-                     _rel_mean(m.final_pos_err, ref.final_pos_err))
+            devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f)) for f in METRICS)
+            mdevs = tuple(_rel_mean(getattr(m, f), getattr(ref, f)) for f in METRICS)
             flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
                         for f in FLAGS)
             if key in worst and ref_ok:

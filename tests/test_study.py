@@ -201,7 +201,8 @@ def test_solver_choice_reaches_the_runs_and_keys_them_by_the_solver_used(monkeyp
                                ("auto", velocity),
                                ("dopri5", [("run", "simple", "gradient")]),  # auto's for velocity
                                ("dopri5", [])]:
-        calls.clear(), solvers.clear()
+        calls.clear()
+        solvers.clear()
         run_sweep(dataclasses.replace(_config(tmp_path), solver=solver))
         assert calls == recomputed, solver
         assert solvers == [solver] * len(recomputed)
