@@ -9,7 +9,8 @@ import redman_jax  # noqa: F401  (x64)
 from redman_jax._math import quat_mul
 from redman_jax._metrics import (aggregate_errors, failure_rate, guidance_termination, masked_mean,
                                  orientation_errors, path_length, per_run_mean, pooled_mean,
-                                 position_errors, run_metrics, time_per_call)
+                                 position_errors, run_metrics, time_per_call,
+                                 wall_time_per_sample)
 
 
 def _axis_angle(axis, phi):
@@ -37,6 +38,23 @@ def test_position_errors_and_path_length():
     np.testing.assert_allclose(position_errors(p, pd), [0.0, 5.0, np.sqrt(26.0)])
     assert float(path_length(jnp.zeros(3), p, jnp.asarray([True, True, False]))) == pytest.approx(5.0)
     assert np.isnan(float(masked_mean(jnp.ones(3), jnp.zeros(3, bool))))
+
+
+def test_non_finite_poses_give_nan_errors_and_zero_gradients_stay():
+    """A NaN pose (a run whose solve stopped) is a NaN error, never 0; an inf one is inf. A zero
+    difference still has a zero, not NaN, gradient (the tuning losses differentiate these)."""
+    p = jnp.asarray([[jnp.nan, 0.0, 0.0], [1.0, 0.0, 0.0], [jnp.inf, 0.0, 0.0]])
+    e = np.asarray(position_errors(p, jnp.zeros((3, 3))))
+    assert np.isnan(e[0]) and e[1] == 1.0 and e[2] == np.inf
+    assert np.isnan(float(path_length(jnp.zeros(3), p, jnp.ones(3, bool))))
+    assert float(path_length(jnp.zeros(3), p, jnp.asarray([False, False, False]))) == 0.0
+    qn = jnp.asarray([[jnp.nan, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]])
+    eo = np.asarray(orientation_errors(qn, jnp.asarray([[1.0, 0, 0, 0]] * 2)))
+    assert np.isnan(eo[0]) and eo[1] == 0.0
+    g = jax.grad(lambda x: jnp.sum(position_errors(x, jnp.zeros((2, 3)))))(jnp.zeros((2, 3)))
+    assert np.all(np.asarray(g) == 0.0)
+    g = jax.grad(lambda x: jnp.sum(position_errors(x, jnp.zeros((1, 3)))))(jnp.asarray([[3.0, 4.0, 0.0]]))
+    np.testing.assert_allclose(g, [[0.6, 0.8, 0.0]])
 
 
 def test_run_metrics_failure_rules():
@@ -86,3 +104,19 @@ def test_pooled_vs_per_run():
 def test_time_per_call_positive():
     t = time_per_call(lambda x: jnp.sin(x) @ x, jnp.ones(8), n_calls=20)
     assert 0.0 < t < 1.0
+
+
+def test_wall_time_per_sample_divides_by_all_samples_of_a_batch(monkeypatch):
+    """A batch's call is divided by the samples of all its runs, a single run's by its own (a fake
+    clock that advances 1 s per reading, so the call takes exactly 1 s)."""
+    import itertools
+
+    import redman_jax._metrics as metrics
+
+    x, f = np.ones(2), (lambda x: x)  # no JAX work inside the timed call
+    clock = itertools.count()
+    monkeypatch.setattr(metrics.time, "perf_counter", lambda: float(next(clock)))
+    one = wall_time_per_sample(f, x, n_samples=10, warmup=0)
+    batch = wall_time_per_sample(f, x, n_samples=np.array([10, 10, 10, 10]), warmup=0)
+    monkeypatch.undo()
+    assert one == 1.0 / 10 and batch == 1.0 / 40

@@ -322,6 +322,24 @@ def test_batch_equals_single_runs_and_nan_is_isolated():
             np.testing.assert_array_equal(np.asarray(x)[i], np.asarray(y)[i])
 
 
+def test_a_solve_out_of_steps_is_flagged_diverged_and_nothing_else(free):
+    """A budget of one step per sample stops the solve early (``throw=False``): diffrax fills the
+    rows it did not reach with ``inf``. The run is reported as diverged (cause 3) and nothing else:
+    the flags are read from the rows it reached (an ``inf`` flag row read as a collision and a
+    joint-limit hit before), and its errors on unreached samples are NaN, not 0 (the NaN pose went
+    through a norm that returned 0)."""
+    sc, jref = free
+    res = run(sc, jref, "osc", params=SimParams(max_steps_per_sample=1, rtol=1e-10))
+    m = res.metrics
+    assert int(res.status) != 0 and bool(res.diverged) and int(m.cause) == 3 and not bool(m.success)
+    f_obs = np.asarray(res.f_obs)
+    assert not np.all(np.isfinite(f_obs)), "the solve was meant to stop early"
+    assert not bool(m.collided) and not bool(m.joint_limit)
+    pos_err = np.asarray(res.pos_err)
+    assert np.all(np.isnan(pos_err[~np.isfinite(np.asarray(res.q)).all(axis=1)]))
+    assert np.isnan(float(m.mean_pos_err)) and float(m.final_pos_err) == np.inf
+
+
 def test_gradients_match_finite_differences(free):
     """d(tracking loss)/d(gains, q0) by the RecursiveCheckpointAdjoint against central finite
     differences of the same simulator. Tight tolerances (1e-10) make the discrete solution a smooth

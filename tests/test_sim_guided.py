@@ -213,3 +213,37 @@ def test_estimator_timing_times_the_update_the_simulation_runs(monkeypatch):
     assert fp is field
     assert float(mu) == 3e-5 and float(max_jump) == 0.5
     np.testing.assert_array_equal(np.asarray(goal), np.asarray(SCEN.goal_p))
+
+
+def test_what_happens_after_the_stop_does_not_count():
+    """The stop rule is applied after the fact in both modes, so the rows after the stop must not
+    change the outcome: a run that held the goal and then (still integrating: ``mode="per_sample"``
+    or ``stop_early=False``) ran out of steps or blew up is a success, as in the default mode. The
+    same failure before the stop is a divergence. Synthetic rows through ``_guided_result`` (both
+    modes hand it one solver status per sample): the arm sits at its start pose, the goal."""
+    import diffrax
+
+    from redman_jax._guidance import VirtualBuffer
+    from redman_jax._sim import _guided_result, _initial_state
+
+    N, hold = 60, 20
+    params = dataclasses.replace(PARAMS, guidance_samples=N, hold_samples=hold)
+    scen = guided_scenario((0.0, 0.0, 0.0))
+    y0 = _initial_state(ARM, CTRL, None, None, jnp.float64)
+    rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (N,) + x.shape), y0)
+
+    def outcome(bad_from):
+        bad = jnp.arange(N) >= bad_from
+        ys = jax.tree.map(lambda x: jnp.where(bad.reshape((N,) + (1,) * (x.ndim - 1)), jnp.inf, x), rows)
+        status = jnp.where(bad, diffrax.RESULTS.max_steps_reached._value, 0)
+        return _guided_result(ARM, scen, params, y0, N, jnp.asarray(TS), ys, jnp.zeros(3, jnp.int32),
+                              status, jnp.zeros((N, 3)), jnp.zeros(N, bool), jnp.zeros(N),
+                              VirtualBuffer.empty(4, jnp.float64))
+
+    after = outcome(hold + 10)  # held over samples 0..hold-1, blew up 10 samples later
+    assert int(after.n_samples) == hold and bool(after.metrics.success)
+    assert not bool(after.diverged) and int(after.status) == 0 and int(after.metrics.cause) == 0
+    assert not bool(after.metrics.collided) and not bool(after.metrics.joint_limit)
+    before = outcome(hold // 2)  # blew up inside the hold
+    assert bool(before.diverged) and not bool(before.metrics.success) and int(before.metrics.cause) == 3
+    assert not bool(before.metrics.collided) and not bool(before.metrics.joint_limit)

@@ -58,14 +58,21 @@ SUCCESS_RADIUS = 0.10  # [m] final position error bound of a successful run (the
 HOLD_TIME = 1.0  # [s] gradient-guided: the goal must be held this long (thesis 3.3.3)
 
 
+def _norm(x):
+    """Norm along the last axis with a zero gradient at ``x = 0`` (:func:`safe_norm`) that keeps a
+    NaN: a non-finite pose (a run whose solve stopped) gives a NaN error, never an error of 0."""
+    return jnp.where(jnp.isnan(jnp.sum(x, axis=-1)), jnp.nan, safe_norm(x, axis=-1))
+
+
 def position_errors(p: Float[Array, "N 3"], p_d: Float[Array, "N 3"]) -> Float[Array, " N"]:
-    """``e_k = |p(t_{k+1}) - p_d[k]|`` for every sample (``p`` saved at sample ends)."""
-    return safe_norm(p - p_d, axis=-1)
+    """``e_k = |p(t_{k+1}) - p_d[k]|`` for every sample (``p`` saved at sample ends; NaN where
+    ``p`` is NaN)."""
+    return _norm(p - p_d)
 
 
 def orientation_errors(quat: Float[Array, "N 4"], quat_d: Float[Array, "N 4"]) -> Float[Array, " N"]:
     """``|e_o| = |vec(Q_d (x) Q^-1)| = sin(phi/2)`` per sample, unclipped (E19; hemisphere-checked)."""
-    return safe_norm(jax.vmap(quat_error)(quat_d, quat), axis=-1)
+    return _norm(jax.vmap(quat_error)(quat_d, quat))
 
 
 def masked_mean(x: Float[Array, " N"], mask: Bool[Array, " N"]) -> Float[Array, ""]:
@@ -78,9 +85,9 @@ def masked_mean(x: Float[Array, " N"], mask: Bool[Array, " N"]) -> Float[Array, 
 
 def path_length(p0: Float[Array, "3"], p: Float[Array, "N 3"], mask: Bool[Array, " N"]) -> Float[Array, ""]:
     """End-effector path length ``sum_k |p_{k+1} - p_k|`` over the sample ends in ``mask``
-    (starting from ``p0``, the position at ``t = 0``)."""
+    (starting from ``p0``, the position at ``t = 0``; NaN if a position in ``mask`` is NaN)."""
     prev = jnp.concatenate([p0[None], p[:-1]], axis=0)
-    return jnp.sum(jnp.where(mask, safe_norm(p - prev, axis=-1), 0.0))
+    return jnp.sum(jnp.where(mask, _norm(p - prev), 0.0))
 
 
 class RunMetrics(eqx.Module):
@@ -253,9 +260,10 @@ def controller_time_per_sample(controller, gains, arm, state, ref, env, n_calls:
 
 def wall_time_per_sample(fn: Callable, *args, n_samples, warmup: int = 1) -> float:
     """Wall time of one (already compiled after ``warmup`` calls) call of ``fn(*args)`` divided by
-    the number of samples it produced: the IK and planning compute time per sample."""
+    the number of samples it produced (``n_samples``: one run's count, or a batch's per-run counts,
+    which are summed): the IK and planning compute time per sample."""
     for _ in range(warmup):
         jax.block_until_ready(fn(*args))
     t0 = time.perf_counter()
     jax.block_until_ready(fn(*args))
-    return (time.perf_counter() - t0) / float(np.asarray(n_samples).mean())
+    return (time.perf_counter() - t0) / float(np.asarray(n_samples).sum())

@@ -275,7 +275,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
             "success": bool(m.success[i]),
             "collided": bool(m.collided[i]),
             "joint_limit_hit": bool(m.joint_limit[i]),
-            "reached": bool(m.final_pos_err[i] < 0.10),
+            "reached": bool(m.final_pos_err[i] < params.goal_radius),
             "cause": int(m.cause[i]),
             "final_pos_error": float(m.final_pos_err[i]),
             "mean_pos_error": float(m.mean_pos_err[i]),

@@ -642,12 +642,13 @@ def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params,
     def outputs(c):
         # Stopped by the rule, or out of steps: the rows not reached hold the last state. After the
         # rule's stop that is the state at the stop, inside the radius, so the post-hoc rule of
-        # _simulate_guided finds the same stop; out of steps is flagged through status.
+        # _simulate_guided finds the same stop; out of steps is flagged through the status of each
+        # row not reached (per sample, so a stop before them, with stop_early=False, is unaffected).
         reached = jnp.arange(N) < c["k"]
         ys = jax.tree.map(lambda rows, v: jnp.where(reached.reshape((N,) + (1,) * v.ndim), rows, v),
                           c["ys"], c["y"])
         stopped = (c["hold"] >= params.hold_samples) & params.stop_early
-        status = jnp.where((c["k"] < N) & ~stopped, diffrax.RESULTS.max_steps_reached._value, 0)
+        status = jnp.where(~reached & ~stopped, diffrax.RESULTS.max_steps_reached._value, 0)
         return ys, c["steps"], status, c["est"], c["est_ok"], c["rots"], c["buf"]
 
     return init, cond, body, outputs
@@ -704,9 +705,24 @@ def _initial_state(arm, controller, q0, qd0, dtype):
     return _Y(q=q0, qd=qd0, z=z0, f=jnp.zeros((3,), dtype))
 
 
-def _diverged(ys: _Y, status):
-    finite = _all_finite((ys.q, ys.qd))
-    return (jnp.max(ys.f[..., 2]) > 0) | (~finite) | (status != 0)
+def _diverged(ys: _Y, status, rows=None):
+    """The run diverged: its divergence flag grew, a state is not finite or the solver stopped
+    (``status``). ``rows`` ``(N,)``: count only these saved rows (a guided run up to its stop)."""
+    if rows is None:
+        finite = _all_finite((ys.q, ys.qd))
+        return (jnp.max(ys.f[..., 2]) > 0) | (~finite) | (status != 0)
+    finite = jnp.all(jnp.where(rows[:, None], jnp.isfinite(ys.q) & jnp.isfinite(ys.qd), True))
+    flag = jnp.max(jnp.where(rows, ys.f[:, 2], 0.0)) > 0  # NaN never compares > 0: caught by finite
+    return flag | (~finite) | (status != 0)
+
+
+def _final_flags(f, rows):
+    """The obstacle and joint-limit flags (columns 0 and 1 of the integrated flag states) at the
+    end of ``rows``: their largest finite value there, as they never decrease. A solve that stopped
+    early (``throw=False``) fills the rows it did not reach with ``inf``; read at the last row they
+    would report a collision and a joint-limit hit that never happened."""
+    ok = rows[:, None] & jnp.isfinite(f[:, :2])
+    return jnp.max(jnp.where(ok, f[:, :2], 0.0), axis=0)
 
 
 def _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params) -> SimResult:
@@ -730,7 +746,8 @@ def _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params) 
     diverged = _diverged(ys, status)
     final_err = jnp.linalg.norm(p[last] - scenario.goal_p)
     final_err = jnp.where(jnp.isfinite(final_err), final_err, jnp.inf)
-    metrics = run_metrics(pos_err, ori_err, ref.rot, mask, final_err, ys.f[last, 0], ys.f[last, 1],
+    flags = _final_flags(ys.f, jnp.arange(N) < ref.n_samples)
+    metrics = run_metrics(pos_err, ori_err, ref.rot, mask, final_err, flags[0], flags[1],
                           diverged, params.goal_radius)
     p0, _ = _ee_pose_batch(arm, y0.q[None])
     B = params.buffer_size
@@ -795,21 +812,28 @@ def _guided_setup(arm, scenario, controller, gains, q0, qd0, params):
 def _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est_ok, rots, buf):
     """The :class:`SimResult` of a gradient-guided run from its per-sample states and counters."""
     dtype = ts.dtype
-    status = jnp.max(status).astype(jnp.int32)
     p, quat = _ee_pose_batch(arm, ys.q)
     goal_err = position_errors(p, jnp.broadcast_to(scenario.goal_p, p.shape))
     goal_err = jnp.where(jnp.isfinite(goal_err), goal_err, jnp.inf)
     ori_err = orientation_errors(quat, jnp.broadcast_to(scenario.goal_quat, quat.shape))
-    diverged = _diverged(ys, status)
-    # collisions up to the stop only: first find the stop ignoring collisions, then read the flags
+    # Collisions and divergence up to the stop only (what happens after it does not count, in
+    # either mode): first find the stop ignoring both, then read them on the rows up to it. A run
+    # that diverges never holds the goal afterwards (its errors are inf), so this stop is its own.
     term0 = guidance_termination(goal_err, ts, False, hold_samples=params.hold_samples,
                                  radius=params.goal_radius)
     last = term0.n_samples - 1
-    collided = ys.f[last, 0] > 0
+    rows = jnp.arange(N) <= last
+    status = jnp.asarray(status)
+    if status.ndim:  # one status per sample (per-sample solves; rows the stepper did not reach)
+        status = jnp.max(jnp.where(rows, status, 0))
+    status = status.astype(jnp.int32)
+    diverged = _diverged(ys, status, rows)
+    flags = _final_flags(ys.f, rows)
+    collided = flags[0] > 0
     term = guidance_termination(goal_err, ts, collided | diverged, hold_samples=params.hold_samples,
                                 radius=params.goal_radius)
-    metrics = run_metrics(goal_err, ori_err, rots, term.mask, term.final_err, ys.f[last, 0],
-                          ys.f[last, 1], diverged, params.goal_radius)
+    metrics = run_metrics(goal_err, ori_err, rots, term.mask, term.final_err, flags[0], flags[1],
+                          diverged, params.goal_radius)
     metrics = eqx.tree_at(lambda m: (m.success, m.cause), metrics,
                           (term.success, jnp.where(diverged, 3, jnp.where(collided, 1, jnp.where(
                               term.success, 0, 2))).astype(jnp.int32)))
