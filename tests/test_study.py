@@ -40,6 +40,10 @@ def test_parse_int_list():
         (["sweep", "--ts", "-1"], "ts"),
         (["sweep", "--gains", "/nonexistent/gains.json"], "--gains"),
         (["sweep", "--solver", "euler"], "solver"),
+        (["sweep", "--arms", "urdf:robot.urdf"], "urdf:PATH:TIP_LINK"),
+        (["sweep", "--arms", "urdf:/nonexistent/robot.urdf:tool0"], "not found"),
+        (["sweep", "--arms", ","], "arms: empty"),
+        (["--seeds", "x"], "redman-jax study: error: --seeds"),  # no subcommand: the study's options
     ],
 )
 def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):
@@ -47,6 +51,74 @@ def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):
     assert code == 2
     err = capsys.readouterr().err
     assert message in err and "error" in err
+
+
+def test_sweep_configuration_is_checked_before_any_work(tmp_path):
+    """Repeated arms on the command line are one arm (they doubled every row of the table);
+    built directly, repeated or empty entries, gains that are not a mapping and unknown gain names
+    are refused at construction, not after an hour of scenario builds."""
+    from redman_jax._cli import build_parser
+
+    args = build_parser().parse_args(["sweep", "--arms", "9,9, 9", "--out", str(tmp_path)])
+    assert SweepConfig.from_args(args, study=False).arms == ("9",)
+    for kw, message in [({"arms": ("9", "9")}, "arms: repeated"), ({"arms": ()}, "arms: empty"),
+                        ({"cases": ("simple", "simple")}, "cases: repeated"),
+                        ({"gains": [1, 2]}, "gains: expected"),
+                        ({"gains": {"velocity": {"nope": 1.0}}}, "no field 'nope'"),
+                        ({"gains": {"velocity": {"kp": [1.0, 2.0]}}}, "gains.kp: expected shape")]:
+        with pytest.raises(ValueError, match=message):
+            SweepConfig(out=str(tmp_path), **kw)
+
+
+def test_urdf_arms_are_keyed_by_their_file_and_never_share_unit_files(tmp_path):
+    """Two URDF files with the same stem and tip link would share unit files and table rows:
+    refused. An edited URDF file is another arm: its scenario (and so run) keys change."""
+    from redman_jax._study import _run_key, _scenario_key
+
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "robot.urdf").write_text(f"<robot name='{d}'/>")
+    a, b = (f"urdf:{tmp_path / d / 'robot.urdf'}:tool0" for d in ("a", "b"))
+    with pytest.raises(ValueError, match="share the label 'robot-tool0'"):
+        SweepConfig(out=str(tmp_path), arms=(a, b))
+    cfg = SweepConfig(out=str(tmp_path), arms=(a,), cases=("simple",), controllers=("velocity",))
+    before = _scenario_key(cfg, a, "simple"), _run_key(cfg, a, "simple", "velocity")
+    assert before == (_scenario_key(cfg, a, "simple"), _run_key(cfg, a, "simple", "velocity"))
+    (tmp_path / "a" / "robot.urdf").write_text("<robot name='a2'/>")
+    after = _scenario_key(cfg, a, "simple"), _run_key(cfg, a, "simple", "velocity")
+    assert before[0] != after[0] and before[1] != after[1]
+
+
+def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
+    """The small cases of a sweep share padded shapes (one compilation), so a case's shapes, and
+    its results to rounding, depend on the other cases in the sweep: the key says which."""
+    from redman_jax._study import _run_key
+
+    alone = SweepConfig(cases=("simple",), controllers=("velocity",))
+    shared = SweepConfig(cases=("simple", "inspection"), controllers=("velocity",))
+    assert pipe.study_shapes(("simple",))["simple"] != pipe.study_shapes(("simple", "inspection"))["simple"]
+    assert _run_key(alone, "9", "simple", "velocity") != _run_key(shared, "9", "simple", "velocity")
+    # warehouse keeps its own shapes whatever else runs: its key does not move
+    w = SweepConfig(cases=("warehouse",), controllers=("velocity",))
+    w2 = SweepConfig(cases=("warehouse", "simple"), controllers=("velocity",))
+    assert _run_key(w, "9", "warehouse", "velocity") == _run_key(w2, "9", "warehouse", "velocity")
+
+
+def test_table_without_parquet_support_removes_an_old_parquet(monkeypatch, tmp_path):
+    from redman_jax._study import write_table
+
+    (tmp_path / "runs.parquet").write_bytes(b"another sweep's table")
+    monkeypatch.setitem(sys.modules, "pandas", None)  # `import pandas` raises ImportError
+    write_table(tmp_path, [{"arm": "9dof", "case": "simple", "seed": 1}])
+    assert (tmp_path / "runs.csv").exists() and not (tmp_path / "runs.parquet").exists()
+
+
+def test_atomic_writes_are_as_readable_as_any_new_file(tmp_path):
+    """``mkstemp`` creates 0600 files; the results get the mode the umask gives a new file."""
+    mask = os.umask(0)
+    os.umask(mask)
+    atomic_write_text(tmp_path / "t.txt", "x")
+    assert (tmp_path / "t.txt").stat().st_mode & 0o777 == 0o666 & ~mask
 
 
 def test_cli_help_exits_cleanly():

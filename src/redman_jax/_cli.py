@@ -108,10 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+        argv = ["study", *argv]  # no subcommand: the study, with any options given
     args = parser.parse_args(argv)
-    command = args.command or "study"
-    if args.command is None:
-        args = parser.parse_args(["study", *(argv or sys.argv[1:])])
+    command = args.command
     try:
         if command in ("study", "sweep"):
             from ._study import SweepConfig, run_sweep

@@ -10,8 +10,9 @@ Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
    padded to common shapes so that one compilation per arm and controller serves them
    (:func:`~redman_jax._pipeline.study_shapes`);
 4. store per-run rows and per-sample traces (atomic writes; a rerun computes only what is missing:
-   a unit is keyed by its configuration, a simulation also by the solver it integrates with, so
-   ``--solver`` or a change of the default recomputes the runs it affects and nothing else).
+   a unit is keyed by its configuration, a URDF arm by its file's content, a simulation also by
+   the solver it integrates with and the shapes it is padded to, so ``--solver``, a change of the
+   default or another set of cases recomputes the runs it affects and nothing else).
 
 ``jobs > 1`` runs the groups in that many worker processes (``spawn``): first the builds (one
 group per arm and case), then the simulations (one group per arm and controller, its cases in one
@@ -21,7 +22,8 @@ own (two unpinned XLA processes contend for both cores: 1.3-1.7x slower, see :fu
 The results are the same as with one process (each unit is a deterministic function of its
 configuration; tested).
 
-At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` hold one row per run, ``DIR/traces/`` the
+At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` (without pandas and pyarrow: no parquet, and an
+older one is removed) hold one row per run, ``DIR/traces/`` the
 per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, ``DIR/timing.csv``
 each unit's wall time and the part of it spent tracing, lowering and compiling (:func:`write_timing`,
 summed on the console), and (unless ``--no-figures``) ``DIR/figures/`` and ``DIR/report.md``
@@ -81,6 +83,29 @@ def _arm_label(spec: str) -> str:
     return f"{spec}dof"
 
 
+def _check_arm_spec(spec: str) -> None:
+    """``arms`` entries: ``7``, ``8``, ``9`` or ``urdf:PATH:TIP_LINK`` with an existing file."""
+    if spec in ("7", "8", "9"):
+        return
+    if not spec.startswith("urdf:"):
+        raise ValueError(f"arms: {spec!r} is neither 7, 8, 9 nor urdf:PATH:TIP_LINK")
+    parts = spec.split(":")
+    if len(parts) != 3 or not parts[1] or not parts[2]:
+        raise ValueError(f"arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
+    if not Path(parts[1]).is_file():
+        raise ValueError(f"arms: URDF file {parts[1]!r} of {spec!r} not found")
+
+
+def _arm_identity(spec: str):
+    """What identifies an arm in a unit's key: the spec of a thesis arm; for a URDF arm also the
+    file's content (an edited file is another arm), read when the key is made."""
+    if not spec.startswith("urdf:"):
+        return spec
+    import hashlib
+
+    return {"spec": spec, "sha256": hashlib.sha256(Path(spec.split(":")[1]).read_bytes()).hexdigest()}
+
+
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
     """What a sweep runs. ``study`` is a sweep with the thesis defaults."""
@@ -102,6 +127,12 @@ class SweepConfig:
     def __post_init__(self):
         from ._controllers import CONTROLLERS
 
+        for name in ("arms", "cases", "controllers", "seeds"):
+            values = tuple(getattr(self, name))
+            if not values:
+                raise ValueError(f"{name}: empty")
+            if len(set(values)) != len(values):
+                raise ValueError(f"{name}: repeated entries in {values}")
         for c in self.cases:
             if c not in CASES:
                 raise ValueError(f"cases: unknown case {c!r}; choose from {list(CASES)}")
@@ -120,13 +151,22 @@ class SweepConfig:
             raise ValueError(f"solver: unknown solver {self.solver!r}; choose from {list(SOLVER_CHOICES)}")
         if self.max_retries < 0:
             raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
+        labels = {}
         for a in self.arms:
-            if not (a.startswith("urdf:") or a in ("7", "8", "9")):
-                raise ValueError(f"arms: {a!r} is neither 7, 8, 9 nor urdf:PATH:TIP_LINK")
+            _check_arm_spec(a)
+            other = labels.setdefault(_arm_label(a), a)
+            if other != a:  # their unit files and table rows would be one arm's
+                raise ValueError(f"arms: {other!r} and {a!r} share the label {_arm_label(a)!r} (file stem "
+                                 "and tip link); rename one of the files")
         if self.gains is not None:
+            if not isinstance(self.gains, dict):
+                raise ValueError(f"gains: expected {{controller: {{gain: value}}}}, got {type(self.gains).__name__}")
+            from ._pipeline import make_gains
+
             for ctrl, g in self.gains.items():
                 if ctrl not in CONTROLLERS or not isinstance(g, dict):
                     raise ValueError(f"gains: expected {{controller: {{gain: value}}}}, got key {ctrl!r}")
+                make_gains(CONTROLLERS[ctrl](), g)  # unknown names or shapes fail now, not after the builds
 
     @classmethod
     def from_args(cls, args, *, study: bool) -> "SweepConfig":
@@ -138,7 +178,7 @@ class SweepConfig:
                       figures=not args.no_figures, progress=not args.quiet, jobs=_jobs(args.jobs))
         if study:
             return cls(**common)
-        arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
+        arms = tuple(dict.fromkeys(a.strip() for a in args.arms.split(",") if a.strip()))
         cases = parse_name_list(args.cases, "cases", CASES)
         controllers = parse_name_list(args.controllers, "controllers", tuple(sorted(CONTROLLERS)))
         gains = None
@@ -162,8 +202,18 @@ class SweepConfig:
 
 
 def _scenario_key(cfg: SweepConfig, arm: str, case: str) -> str:
-    return config_hash({"arm": arm, "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
+    return config_hash({"arm": _arm_identity(arm), "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
                         "max_retries": cfg.max_retries, "v": 1})
+
+
+def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
+    """The shapes ``(N, (spheres, boxes, cylinders))`` a simulation unit pads its case to: shared
+    with the other small cases of the sweep that run ``ctrl`` (:func:`~redman_jax._pipeline.study_shapes`),
+    so they depend on which cases the sweep holds."""
+    from . import _pipeline as pipe
+
+    cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
+    return pipe.study_shapes(cases, cfg.ts)[case]
 
 
 def _sim_params(cfg: SweepConfig):
@@ -173,16 +223,18 @@ def _sim_params(cfg: SweepConfig):
 
 
 def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
-    """The key of a simulation unit: its scenarios, controller, gains and the solver it integrates
-    with (resolved: ``"auto"`` names the solver it picks for ``ctrl``), so a results folder of
-    another solver (before ab7715f the trajectory runs used Tsit5) is recomputed, not mixed in."""
+    """The key of a simulation unit: its scenarios, controller, gains, the solver it integrates
+    with (resolved: ``"auto"`` names the solver it picks for ``ctrl``) and the shapes it is padded
+    to (:func:`_sim_shapes`; padding changes results to rounding), so a results folder of another
+    solver or another set of cases is recomputed, not mixed in."""
     from ._controllers import CONTROLLERS
     from ._sim import solver_name
 
     gains = (cfg.gains or {}).get(ctrl)
     solver = solver_name(_sim_params(cfg), CONTROLLERS[ctrl]())
+    N, caps = _sim_shapes(cfg, case, ctrl)
     return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains,
-                        "solver": solver, "v": 1})
+                        "solver": solver, "shapes": [int(N), [int(c) for c in caps]], "v": 1})
 
 
 def _jobs(value) -> int:
@@ -294,10 +346,8 @@ def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
         payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
     else:
         scen = store.load(f"scen_{_arm_label(arm_spec)}_{case}")
-        cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
         payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl),
-                                      sim_params=_sim_params(cfg),
-                                      shapes=pipe.study_shapes(cases, cfg.ts)[case])
+                                      sim_params=_sim_params(cfg), shapes=_sim_shapes(cfg, case, ctrl))
         payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
     store.save(name, key, payload)
 
@@ -547,17 +597,17 @@ def write_table(out: Path, rows: list[dict]) -> None:
     for r in rows:
         w.writerow({k: _plain(r.get(k)) for k in cols})
     atomic_write_text(Path(out) / "runs.csv", buf.getvalue())
+    parquet = Path(out) / "runs.parquet"
     try:
         import pandas as pd
-    except ImportError:
-        return
-    df = pd.DataFrame([{k: _plain(r.get(k)) for k in cols} for r in rows], columns=cols)
-    pbuf = io.BytesIO()
-    try:
+
+        df = pd.DataFrame([{k: _plain(r.get(k)) for k in cols} for r in rows], columns=cols)
+        pbuf = io.BytesIO()
         df.to_parquet(pbuf, index=False)
     except (ImportError, ValueError):
+        parquet.unlink(missing_ok=True)  # never leave another sweep's table beside this runs.csv
         return
-    atomic_write_bytes(Path(out) / "runs.parquet", pbuf.getvalue())
+    atomic_write_bytes(parquet, pbuf.getvalue())
 
 
 def _plain(v):
