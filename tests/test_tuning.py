@@ -296,3 +296,59 @@ def test_batched_tuning_matches_individual_runs():
         for f in r.fields:
             np.testing.assert_allclose(float(getattr(rb.gains, f)[i]), float(getattr(r.gains, f)), rtol=1e-9)
         assert abs(float(rb.settling_time[i]) - 0.25) <= 0.05 * 0.25
+
+
+def test_torque_bound_decides_the_stop_and_the_returned_iterate():
+    """With a torque bound the tuner stops only at an iterate within it, and returns one over it
+    only when none within it was accepted (it stopped at the start's gains however much they
+    exceeded the bound, and ranked iterates by |T_s - T*| alone)."""
+    from types import SimpleNamespace
+
+    from redman_jax._tuning import TuneSettings, _best_iterate, _converged
+
+    s = TuneSettings()
+    aux = lambda torque: SimpleNamespace(settled=jnp.asarray(True), T=jnp.asarray(0.40),  # noqa: E731
+                                         torque=jnp.asarray(torque))
+    yes = jnp.asarray(True)
+    assert bool(_converged("settling", False, yes, aux(3.0), 0.40, s))
+    assert not bool(_converged("settling", True, yes, aux(3.0), 0.40, s))
+    assert bool(_converged("settling", True, yes, aux(1.01), 0.40, s))
+    assert not bool(_converged("tracking", True, yes, aux(0.5), 0.40, s))
+    hist = {"accepted": np.array([True, True, True]), "settled": np.array([True, True, True]),
+            "settling_time": np.array([0.400, 0.404, 0.46]), "loss": np.zeros(3),
+            "torque_ratio": np.array([3.0, 0.99, 1.5])}
+    assert int(_best_iterate(hist, 0.40, "settling")) == 0  # no bound: the closest settling time
+    assert int(_best_iterate(hist, 0.40, "settling", 0.02)) == 1
+    hist["torque_ratio"] = np.array([3.0, 1.8, 1.5])  # none within: the smallest excess
+    assert int(_best_iterate(hist, 0.40, "settling", 0.02)) == 2
+
+
+def test_experiment_start_reaches_the_simulation():
+    """A step experiment built from another start ``q0`` runs from there (the runs started from
+    ``arm.q0`` whatever the experiment's reference was built from)."""
+    from redman_jax._tuning import step_response
+
+    arm = thesis_arm(7)
+    q0 = np.asarray(arm.q0).copy()
+    q0[1] += 0.3
+    exp = step_experiment(arm, horizon=0.05, q0=q0)
+    np.testing.assert_allclose(exp.q0, q0)
+    ctrl = make_controller("joint_space")
+    res = step_response(arm, ctrl, ctrl.default_gains(), exp)
+    # after one 10 ms sample the joints are within a few mrad of where they started
+    assert np.max(np.abs(np.asarray(res.q[0]) - q0)) < 0.02
+    assert np.max(np.abs(np.asarray(res.q[0]) - np.asarray(arm.q0))) > 0.25
+
+
+def test_ik_joint_target_must_reach_well_inside_the_band(monkeypatch):
+    """``joint_target="ik"`` accepts a residual of at most a tenth of the settling band (it
+    accepted 1 mm, the band itself: such a q* settles late or never)."""
+    import redman_jax._tuning as tuning
+
+    arm = thesis_arm(7)
+    q_star, _ = joint_step_target(arm, tuning.step_scenario(arm).goal_p, arm.q0)
+    monkeypatch.setattr(tuning, "_ik_step_target", lambda a, sc, q0: (q_star, jnp.asarray(5e-4)))
+    with pytest.raises(ValueError, match="did not reach"):
+        step_experiment(arm, joint_target="ik")
+    monkeypatch.setattr(tuning, "_ik_step_target", lambda a, sc, q0: (q_star, jnp.asarray(5e-5)))
+    assert step_experiment(arm, joint_target="ik").kind == "step"

@@ -170,14 +170,16 @@ def _arr(x):
 
 class StepExperiment(eqx.Module):
     """One experiment: the operational ``scenario``, the joint reference ``(q, qd, qdd)`` for
-    joint-space controllers (``(N, n)`` each), the band ``band`` [m] and ``kind`` (static):
-    ``"step"`` (settling time) or ``"tracking"`` (RMS tracking error)."""
+    joint-space controllers (``(N, n)`` each), the band ``band`` [m], the start ``q0`` ``(n,)`` the
+    reference was built from (every run starts there, at rest) and ``kind`` (static): ``"step"``
+    (settling time) or ``"tracking"`` (RMS tracking error)."""
 
     scenario: Scenario
     joint_q: Float[Array, "N n"]
     joint_qd: Float[Array, "N n"]
     joint_qdd: Float[Array, "N n"]
     band: Float[Array, ""]
+    q0: Float[Array, " n"]
     kind: str = eqx.field(static=True, default="step")
 
     @property
@@ -314,7 +316,8 @@ def step_experiment(arm: Arm, step=STEP, horizon: float = 1.0, ts: float = 0.01,
         tol = 1e-6
     else:
         q_star, res = _ik_step_target(arm, sc, q0)
-        tol = 1e-3
+        # a tenth of the settling band: a q* off by the band itself would settle late or never
+        tol = 0.1 * band_fraction * float(np.linalg.norm(np.asarray(step, float)))
     if not float(res) < tol:
         raise ValueError(f"joint_target: {joint_target!r} did not reach the stepped position "
                          f"(residual {float(res):.2e} m)")
@@ -323,7 +326,7 @@ def step_experiment(arm: Arm, step=STEP, horizon: float = 1.0, ts: float = 0.01,
     zero = jnp.zeros_like(q_ref)
     band = band_fraction * float(np.linalg.norm(np.asarray(step, float)))
     return StepExperiment(scenario=sc, joint_q=q_ref, joint_qd=zero, joint_qdd=zero,
-                          band=jnp.asarray(band, q_ref.dtype), kind="step")
+                          band=jnp.asarray(band, q_ref.dtype), q0=jnp.asarray(q0, q_ref.dtype), kind="step")
 
 
 def tracking_experiment(arm: Arm, radius: float = 0.1, period: float = 2.0, horizon: float = 1.0,
@@ -335,8 +338,9 @@ def tracking_experiment(arm: Arm, radius: float = 0.1, period: float = 2.0, hori
 
     sc = circle_scenario(arm, radius, period, horizon=horizon, ts=ts, q0=q0)
     ik = ik_reference(arm, sc.reference, sc.obstacles, q0=q0)
+    q0 = arm.q0 if q0 is None else jnp.asarray(q0)
     return StepExperiment(scenario=sc, joint_q=ik.q, joint_qd=ik.qd, joint_qdd=ik.qdd,
-                          band=jnp.asarray(1e-3, ik.q.dtype), kind="tracking")
+                          band=jnp.asarray(1e-3, ik.q.dtype), q0=jnp.asarray(q0, ik.q.dtype), kind="tracking")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -511,7 +515,7 @@ def step_response(arm: Arm, controller, gains, experiment: StepExperiment, param
     controllers)."""
     ik = experiment.joint_reference if controller.needs_joint_reference else None
     return simulate(arm, experiment.scenario, controller, strong_gains(gains), ik=ik,
-                    params=_sim_params(params))
+                    params=_sim_params(params), q0=experiment.q0)
 
 
 def experiment_settling_time(arm, controller, gains, experiment: StepExperiment, params=None):
@@ -540,7 +544,8 @@ class TuneSettings(eqx.Module):
     """Numbers of the tuner (arrays; changing them never recompiles). ``width``: surrogate sigmoid
     width in log-error; ``reg``: pull of the log-gains toward the start; ``ratio_weight``: stability
     box weight; ``torque_weight``; ``stop_rtol``: stop once ``|T_s - T*| <= stop_rtol T*`` (settling
-    objective)."""
+    objective) and, with a torque bound, the torque ratio is at most ``1 + torque_rtol``; iterates
+    over that ratio are never returned while one within it was accepted."""
 
     learning_rate: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
     width: Float[Array, ""] = eqx.field(default=0.25, converter=_arr)
@@ -548,6 +553,7 @@ class TuneSettings(eqx.Module):
     ratio_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
     torque_weight: Float[Array, ""] = eqx.field(default=10.0, converter=_arr)
     stop_rtol: Float[Array, ""] = eqx.field(default=0.02, converter=_arr)
+    torque_rtol: Float[Array, ""] = eqx.field(default=0.02, converter=_arr)
     lm_damping: Float[Array, ""] = eqx.field(default=1e-3, converter=_arr)
 
 
@@ -597,7 +603,7 @@ def _sim_residuals(theta, arm, controller, base_gains, experiment, params, field
     ctrl = TorqueMonitor(controller) if use_torque else controller
     g = (gains, tau_max) if use_torque else gains
     ik = experiment.joint_reference if controller.needs_joint_reference else None
-    res = simulate(arm, experiment.scenario, ctrl, g, ik=ik, params=params)
+    res = simulate(arm, experiment.scenario, ctrl, g, ik=ik, params=params, q0=experiment.q0)
     err, mask = res.pos_err, res.mask
     ref = experiment.scenario.reference
     ts = ref.ts.astype(err.dtype)
@@ -692,6 +698,7 @@ def _step(state: _State, arm, base_gains, experiment, target, theta0, tau_max, s
     J_pri = jax.jacfwd(_prior_residuals)(state.theta, theta0, name, fields, settings)
     R = jnp.concatenate([R_sim, R_pri])
     J = jnp.concatenate([J_sim, J_pri])
+    J_finite = jnp.all(jnp.isfinite(J_sim))
     R = jnp.where(jnp.isfinite(R), R, 0.0)
     J = jnp.where(jnp.isfinite(J), J, 0.0)
     loss = 0.5 * jnp.sum(R * R)
@@ -702,7 +709,7 @@ def _step(state: _State, arm, base_gains, experiment, target, theta0, tau_max, s
         merit = loss + 0.5 * (((T_m - target) / target) ** 2 - R[0] ** 2)
     else:
         merit = loss
-    bad = aux.bad | ~jnp.isfinite(merit)
+    bad = aux.bad | ~jnp.isfinite(merit) | ~J_finite  # a NaN reverse pass is no direction to take
     accept = (~bad) & (merit <= state.good_merit)
     scale = jnp.where(accept, jnp.minimum(1.5 * state.scale, 1.0), 0.5 * state.scale)
     R_use = jnp.where(accept, R, state.good_R)
@@ -719,21 +726,32 @@ def _step(state: _State, arm, base_gains, experiment, target, theta0, tau_max, s
     else:
         updates, opt_new = opt.update(grad, state.opt, origin)
     theta_new = origin + settings.learning_rate * scale * updates
-    if objective == "settling":
-        converged = accept & aux.settled & (jnp.abs(aux.T - target) <= settings.stop_rtol * target)
-    else:
-        converged = jnp.zeros((), bool)
+    converged = _converged(objective, use_torque, accept, aux, target, settings)
     done = state.done | converged
     hold = lambda old, new: jnp.where(state.done, old, new)
     new = _State(theta=hold(state.theta, jnp.where(converged, state.theta, theta_new)),
                  good=hold(state.good, origin),
                  good_merit=hold(state.good_merit, jnp.where(accept, merit, state.good_merit)),
                  good_R=hold(state.good_R, R_use), good_J=hold(state.good_J, J_use),
-                 opt=jax.tree.map(lambda o, n: jnp.where(state.done, o, n), state.opt, opt_new),
+                 # a rejected point retries the last accepted one's step at half the trust region:
+                 # Adam's moments and count advance on accepted points only
+                 opt=jax.tree.map(lambda o, n: jnp.where(state.done | ~accept, o, n), state.opt, opt_new),
                  scale=hold(state.scale, scale), done=done)
     # d T_soft / d theta (settling: r_main = (T_hat - T*) / T*); exposed for the gradient checks
     dT_soft = J_sim[0] * target if objective == "settling" else jnp.zeros_like(state.theta)
     return new, (loss, aux, state.theta, accept, dT_soft)
+
+
+def _converged(objective, use_torque, accept, aux, target, settings):
+    """The tuner stops at an accepted iterate that settles within ``stop_rtol`` of the target and,
+    with a torque bound, keeps the torque ratio within ``1 + torque_rtol`` (settling objective;
+    the tracking objective runs all its steps)."""
+    if objective != "settling":
+        return jnp.zeros((), bool)
+    ok = accept & aux.settled & (jnp.abs(aux.T - target) <= settings.stop_rtol * target)
+    if use_torque:
+        ok = ok & (aux.torque <= 1.0 + settings.torque_rtol)
+    return ok
 
 
 @functools.lru_cache(maxsize=None)
@@ -920,7 +938,8 @@ def _tune(arm, controller, name, base, experiment, params, target, steps, learni
     compile_time = max(times[0] - float(np.median(times[1:])), 0.0) if len(times) > 1 else times[0]
     hist = {k: np.stack(v) for k, v in hist.items()}
     hist["iteration_time"] = np.asarray(times)
-    best = _best_iterate(hist, np.asarray(target), objective)  # (B,) or ()
+    best = _best_iterate(hist, np.asarray(target), objective,
+                         np.asarray(settings.torque_rtol) if use_torque else None)  # (B,) or ()
     th = np.take_along_axis(hist["log_gains"], best[None, ..., None], axis=0)[0] if batched else \
         hist["log_gains"][int(best)]
     pick = lambda a: (np.take_along_axis(a, best[None], axis=0)[0] if batched else a[int(best)])
@@ -938,14 +957,19 @@ def _tune(arm, controller, name, base, experiment, params, target, steps, learni
         compile_time=compile_time)
 
 
-def _best_iterate(hist, target, objective):
-    """Index of the best accepted iterate per batch member."""
+def _best_iterate(hist, target, objective, torque_rtol=None):
+    """Index of the best accepted iterate per batch member. With a torque bound (``torque_rtol``
+    given) an iterate whose torque ratio exceeds ``1 + torque_rtol`` ranks after every one within
+    it (among those over it, the lower ratio first)."""
     ok = hist["accepted"].astype(bool)
     if objective == "settling":
         # unsettled iterates carry T_s = horizon, so they score worse than any settled one near T*
         score = np.abs(hist["settling_time"] - target) + np.where(hist["settled"], 0.0, 1e3)
     else:
         score = hist["loss"]
+    if torque_rtol is not None:
+        ratio = hist["torque_ratio"]
+        score = score + np.where(ratio <= 1.0 + torque_rtol, 0.0, 1e6 * (1.0 + ratio))
     score = np.where(ok & np.isfinite(score), score, np.inf)
     return np.argmin(score, axis=0)
 
@@ -974,7 +998,7 @@ def step_responses(arm: Arm, gains_by_controller: dict | None = None, controller
         T, ok, res = experiment_settling_time(arm, ctrl, g, experiment, params)
         t = np.concatenate([[0.0], np.asarray(res.t)])
         e0 = float(np.linalg.norm(np.asarray(experiment.scenario.reference.p[0])
-                                  - np.asarray(end_effector_pose(arm, arm.q0)[0])))
+                                  - np.asarray(end_effector_pose(arm, experiment.q0)[0])))
         e = np.concatenate([[e0], np.asarray(res.pos_err)])
         out[name] = (t, e, T, ok)
     return out
