@@ -211,6 +211,9 @@ def _edit(old, new):
         (_edit('<child link="b"/>', '<child link="zz"/>'), "tip", "joint 'j2'/child"),
         (_edit('<mass value="1.5"/>', '<mass value="0.0"/>'), "tip", "link 'b'.*total mass"),
         (SMALL.replace("<robot", "<robbot").replace("</robot>", "</robbot>"), "tip", "<robot>"),
+        # a mimic joint would silently become an independent degree of freedom
+        (_edit('<axis xyz="0 1 0"/>', '<axis xyz="0 1 0"/><mimic joint="j1" multiplier="1"/>'), "tip",
+         "joint 'j2': mimics joint 'j1'"),
     ],
 )
 def test_invalid_urdf(text, tip, match):

@@ -126,7 +126,7 @@ def _origin(parent: ET.Element, where: str) -> np.ndarray:
 
 
 class _Joint:
-    __slots__ = ("name", "type", "parent", "child", "origin", "axis", "lower", "upper")
+    __slots__ = ("name", "type", "parent", "child", "origin", "axis", "lower", "upper", "mimic")
 
 
 def _parse_inertial(link: ET.Element, name: str):
@@ -183,6 +183,8 @@ def _parse_joint(el: ET.Element, links: dict) -> _Joint:
             raise ValueError(f"URDF {where}/{role}: link {sub.get('link')!r} is not defined")
         setattr(j, role, sub.get("link"))
     j.origin = _origin(el, where)
+    mimic = el.find("mimic")
+    j.mimic = None if mimic is None else (mimic.get("joint") or "?")
     j.axis = np.array([1.0, 0.0, 0.0])
     j.lower, j.upper = -math.pi, math.pi
     if j.type in _MOVABLE:
@@ -307,6 +309,9 @@ def from_urdf_string(text: str, tip_link: str, base_link: str | None = None, *,
     for j in path:
         if j.type in ("floating", "planar"):
             raise ValueError(f"URDF joint '{j.name}': type {j.type!r} is not supported on the chain")
+        if j.mimic is not None and j.type in _MOVABLE:  # it would become an independent joint
+            raise ValueError(f"URDF joint '{j.name}': mimics joint '{j.mimic}'; mimic joints are not "
+                             "supported on the chain (choose a tip_link before it)")
     movable = [j for j in path if j.type in _MOVABLE]
     if not movable:
         raise ValueError(f"from_urdf: no movable joint between {link!r} and tip_link {tip_link!r}")
