@@ -95,7 +95,7 @@ def test_perfect_controller_needs_the_estimator(seed):
     plain = perfect_controller(xs, xg, obs, PerfectParams(estimator=False))
     guided = perfect_controller(xs, xg, obs, PerfectParams())
     assert not bool(plain.success) and float(plain.termination.final_err) > 0.3
-    assert bool(guided.success) and bool(guided.termination.held)
+    assert bool(guided.success) and bool(guided.termination.held) and not bool(guided.failed)
     n = int(guided.termination.n_samples)
     assert n < 600 and float(guided.goal_err[n - 1]) < 0.10
     assert float(jnp.min(guided.min_dist[:n])) > 0.0  # never inside an obstacle
@@ -120,6 +120,29 @@ def test_perfect_controller_batch_equals_singles():
         # so compare the approach before the trap tightly and the outcome exactly.
         np.testing.assert_allclose(batch.x[i, :10], single.x[:10], rtol=0, atol=1e-9)
         assert bool(batch.success[i]) == bool(single.success)
+
+
+def test_perfect_controller_reports_failed_solves_and_collisions():
+    """A step budget too small for the samples (3 steps per 10 ms sample at rtol 1e-5) stops the
+    solves short: the run is ``failed`` and not a success (it carried on from wherever the solver
+    stopped). A point started inside an obstacle has collided (``min_dist < 0``) and fails even if
+    the field pushes it to the goal. A float32 start runs (the field parameters are float64)."""
+    obs, xs, xg, _ = simple_scene(2)
+    pp = PerfectParams(n_samples=120, hold_samples=20)
+    ok = perfect_controller(xs, xg, obs, pp)
+    assert not bool(ok.failed) and not bool(ok.collided) and int(ok.n_short) == 0
+    short = perfect_controller(xs, xg, obs, PerfectParams(n_samples=120, hold_samples=20,
+                                                          max_steps_per_sample=3, rtol=1e-12, atol=1e-14))
+    assert bool(short.failed) and not bool(short.success) and int(short.n_short) > 0
+    # start inside the fourth sphere of a one-sphere scene beside the line, goal 0.3 m away
+    c = np.asarray(xs) + np.array([0.0, 0.0, -0.5])
+    one = make_obstacles(spheres=[(np.eye(3), c, (0.05,))], capacities=(1, 1, 1))
+    inside = perfect_controller(c + np.array([0.01, 0.0, 0.0]), c + np.array([0.3, 0.0, 0.0]), one,
+                                PerfectParams(n_samples=200, hold_samples=20))
+    assert float(inside.min_dist[0]) < 0.0 or bool(inside.collided)
+    assert bool(inside.collided) and not bool(inside.success)
+    f32 = perfect_controller(np.asarray(xs, np.float32), xg, obs, pp)
+    np.testing.assert_allclose(f32.x, ok.x, rtol=0, atol=1e-6)
 
 
 def test_bad_input_raises():
