@@ -394,6 +394,15 @@ def test_tunable_dimensions_take_effect(arms):
     assert hits.min() < 1e-12
 
 
+def test_warehouse_keeps_start_protection(arms):
+    """Shelves moved to 0.22 m from the base axis break the start protection (0.25 m below
+    z = 0.5): every draw is refused (the warehouse generator never checked it)."""
+    stats = collections.Counter()
+    prm = CaseParams(warehouse=WarehouseParams(front=0.22), max_draws=3)
+    sc = make_scenarios("warehouse", [1], arms[9], params=prm, max_retries=0, stats=stats)
+    assert not bool(np.asarray(sc.valid)[0]) and stats["redraw:start_protection"] == 3
+
+
 def test_validate_hook_moves_the_seed(arms):
     arm = arms[9]
     calls = []
