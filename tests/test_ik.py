@@ -242,6 +242,22 @@ def test_bad_input_raises():
         ik_reference(ARM, ref, free_obstacles(), IKParams(), jnp.zeros(3))
     with pytest.raises(ValueError, match="method"):
         IKParams(method="newton")
+    # a zero or NaN acceleration bound made every bound NaN and every candidate silently invalid
+    for kw, field in [({"acc_limit": 0.0}, "acc_limit"), ({"acc_limit": float("nan")}, "acc_limit"),
+                      ({"goal_tolerance": -0.1}, "goal_tolerance"), ({"w": -1e-4}, "w"),
+                      ({"ns_speed_limit": 0.0}, "ns_speed_limit")]:
+        with pytest.raises(ValueError, match=f"IKParams.{field}"):
+            IKParams(**kw)
+    IKParams(ns_speed_limit=float("inf"), activation=-1.0)  # documented settings stay valid
+
+
+def test_padded_samples_carry_no_qp_diagnostics(free_run):
+    """Past ``n_samples`` the QP iteration and constraint counts are 0, like the other fields."""
+    ref, res = free_run
+    n = int(res.n_samples)
+    assert n < res.q.shape[0], "the circle reference must be padded for this test"
+    assert np.all(np.asarray(res.qp_iterations)[n:] == 0) and np.all(np.asarray(res.n_constrained)[n:] == 0)
+    assert np.any(np.asarray(res.qp_iterations)[:n] > 0)
 
 
 def test_validated_scenarios_reseeds(monkeypatch):

@@ -148,6 +148,21 @@ class IKParams(eqx.Module):
             raise ValueError(f"IKParams.jac_scaling: expected 'rows_only' or 'consistent', got {self.jac_scaling!r}")
         if not isinstance(self.n_pairs, int) or self.n_pairs < 1:
             raise ValueError(f"IKParams.n_pairs: expected a positive int, got {self.n_pairs!r}")
+        # numbers, where concrete (not traced): a zero or NaN acceleration bound made the position
+        # bounds NaN and every candidate silently invalid
+        # (``activation < 0`` is allowed: it switches the constraint rows off)
+        rules = {"acc_limit": "positive", "goal_tolerance": "positive", "ns_speed_limit": "positive or inf",
+                 "w": "non-negative", "S_t": "positive", "S_r": "positive", "ori_clip": "positive",
+                 "limit_tolerance": "non-negative"}
+        for name, rule in rules.items():
+            x = getattr(self, name)
+            if isinstance(x, jax.core.Tracer):
+                continue
+            x = np.asarray(x)
+            ok = (x > 0) if rule.startswith("positive") else (x >= 0)
+            ok = ok & (np.isfinite(x) | (rule == "positive or inf") & (x == np.inf))
+            if not np.all(ok):
+                raise ValueError(f"IKParams.{name}: must be {rule}, got {x}")
 
 
 class IKResult(eqx.Module):
@@ -459,8 +474,9 @@ def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams)
         min_distance=jnp.where(valid_s, diag["min_distance"], jnp.inf),
         clearance=jnp.where(valid_s, diag["clearance"], jnp.inf),
         qp_primal=zero_f(diag["qp_primal"]), qp_dual=zero_f(diag["qp_dual"]),
-        qp_converged=diag["qp_converged"] | ~valid_s, qp_iterations=diag["qp_iterations"],
-        n_constrained=diag["n_constrained"], final_error=final_error,
+        qp_converged=diag["qp_converged"] | ~valid_s,
+        qp_iterations=jnp.where(valid_s, diag["qp_iterations"], 0),
+        n_constrained=jnp.where(valid_s, diag["n_constrained"], 0), final_error=final_error,
         collision_free=jnp.asarray(False), within_limits=jnp.asarray(False), reached=jnp.asarray(False),
         finite=jnp.asarray(False), valid=jnp.asarray(False),
     )
