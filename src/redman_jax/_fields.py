@@ -134,7 +134,8 @@ def obstacle_potential(r, a, D, form: str = "minus"):
 
 
 def obstacle_potential_dr(r, a, D, form: str = "minus"):
-    """``dV_o/dr`` (3.9 corrected, E5): ``-a (3D -/+ 2r) / (D r^4)`` for ``0 < r <= D``, else 0.
+    """``dV_o/dr`` (3.9 corrected, E5): ``-a (3D -/+ 2r) / (D r^4)`` for ``0 < r <= D``, 0 for
+    ``r > D`` and ``-inf`` for ``r <= 0`` (unclamped; the field functions clamp ``r`` first).
 
     ``"minus"`` gives ``-a (3D - 2r)/(D r^4)``, ``"plus"`` gives ``-a (3D + 2r)/(D r^4)``.
     """
@@ -146,7 +147,8 @@ def obstacle_potential_dr(r, a, D, form: str = "minus"):
 
 
 def obstacle_potential_d2r(r, a, D, form: str = "minus"):
-    """``d^2V_o/dr^2 = a (12 D -/+ 6 r) / (D r^5)`` for ``0 < r <= D``, else 0."""
+    """``d^2V_o/dr^2 = a (12 D -/+ 6 r) / (D r^5)`` for ``0 < r <= D``, 0 for ``r > D`` and ``+inf``
+    for ``r <= 0`` (unclamped)."""
     _check_form(form)
     sgn = -1.0 if form == "minus" else 1.0
     r_safe = jnp.where(r > 0, r, 1.0)
