@@ -167,6 +167,27 @@ def test_welding_arc_constant_speed_radius_and_rotation(direction):
     assert np.min(np.sum(seg.quat[1:] * seg.quat[:-1], axis=1)) > math.cos(0.1 / 2)
 
 
+def test_degenerate_directions_raise_naming_the_argument():
+    """A zero or NaN direction or quaternion, or an arc start direction along the normal, gave NaN
+    samples; each is a ``ValueError`` naming the argument."""
+    q = np.array([1.0, 0, 0, 0])
+    n, e1 = np.array([0.0, 0, 1]), np.array([1.0, 0, 0])
+    cases = [
+        (lambda: min_rotation([0.0, 0.0, 0.0]), "a:"),
+        (lambda: min_rotation([np.nan, 0.0, 1.0]), "a:"),
+        (lambda: line_segment(np.zeros(3), np.ones(3), np.zeros(4), q, v_max=V, a_max=A, ts=TS), "quat_a"),
+        (lambda: line_segment(np.zeros(3), np.ones(3), q, np.zeros(4), v_max=V, a_max=A, ts=TS), "quat_b"),
+        (lambda: arc_segment(np.zeros(3), np.zeros(3), e1, 0.1, 0.0, q), "normal"),
+        (lambda: arc_segment(np.zeros(3), n, 2 * n, 0.1, 0.0, q), "e1"),
+        (lambda: arc_segment(np.zeros(3), n, e1, 0.1, np.nan, q), "theta0"),
+        (lambda: arc_segment(np.full(3, np.nan), n, e1, 0.1, 0.0, q), "center"),
+        (lambda: arc_segment(np.zeros(3), n, e1, 0.1, 0.0, np.zeros(4)), "quat0"),
+    ]
+    for make, name in cases:
+        with pytest.raises(ValueError, match=name):
+            make()
+
+
 def test_zigzag_every_leg_rest_to_rest():
     pts = zigzag_points([0.5, 0.0, 1.0], [0, 1, 0], [0, 0, 1], 0.16, (0.1, 0.0, -0.1))
     assert pts.shape == (6, 3)

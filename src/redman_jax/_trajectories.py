@@ -119,13 +119,22 @@ def quat_from_rot(R: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+def _unit(x, name: str, size: int = 3) -> np.ndarray:
+    """``x / |x|`` for a finite, non-zero ``size``-vector; ``ValueError`` naming ``name`` otherwise
+    (a zero or NaN direction would give NaN samples)."""
+    x = np.asarray(x, float)
+    n = float(np.linalg.norm(x)) if x.shape == (size,) else float("nan")
+    if not (np.isfinite(n) and n > 0):
+        raise ValueError(f"{name}: expected a finite, non-zero {size}-vector, got {x}")
+    return x / n
+
+
 def min_rotation(a: np.ndarray) -> np.ndarray:
     """The minimal rotation taking ``e_z`` to the unit vector ``a`` (SPEC section 4, ``R_goal``).
 
     Rodrigues about ``e_z x a``; for ``a = -e_z`` (no unique axis) a half turn about ``e_x``.
     """
-    a = np.asarray(a, float)
-    a = a / np.linalg.norm(a)
+    a = _unit(a, "a")
     ez = np.array([0.0, 0.0, 1.0])
     c = float(ez @ a)
     w = np.cross(ez, a)
@@ -252,9 +261,8 @@ def line_segment(p_a, p_b, quat_a=None, quat_b=None, *, rot: float = 0.0, v_max:
         raise ValueError(f"p_a: expected a finite 3-vector, got {p_a}")
     if p_b.shape != (3,) or not np.all(np.isfinite(p_b)):
         raise ValueError(f"p_b: expected a finite 3-vector, got {p_b}")
-    qa = np.array([1.0, 0, 0, 0]) if quat_a is None else np.asarray(quat_a, float)
-    qa = qa / np.linalg.norm(qa)
-    qb = qa if quat_b is None else np.asarray(quat_b, float) / np.linalg.norm(quat_b)
+    qa = np.array([1.0, 0, 0, 0]) if quat_a is None else _unit(quat_a, "quat_a", 4)
+    qb = qa if quat_b is None else _unit(quat_b, "quat_b", 4)
     d = p_b - p_a
     length = float(np.linalg.norm(d))
     phi, k = _quat_log_rel(qa, qb)
@@ -297,12 +305,17 @@ def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angl
     and ``omega_dot = th_ddot n``.
     """
     c = np.asarray(center, float)
-    n = np.asarray(normal, float)
-    n = n / np.linalg.norm(n)
-    e1 = np.asarray(e1, float)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"center: expected a finite 3-vector, got {c}")
+    n = _unit(normal, "normal")
+    e1 = _unit(e1, "e1")
     e1 = e1 - (e1 @ n) * n
+    if np.linalg.norm(e1) < 1e-9:
+        raise ValueError("e1: must not be parallel to the normal (no in-plane direction left)")
     e1 = e1 / np.linalg.norm(e1)
     e2 = np.cross(n, e1)
+    if not np.isfinite(theta0):
+        raise ValueError(f"theta0: must be finite, got {theta0!r}")
     if not (np.isfinite(radius) and radius > 0):
         raise ValueError(f"radius: must be positive, got {radius!r}")
     if direction not in (1, -1):
@@ -316,7 +329,7 @@ def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angl
     p = c + radius * r_hat
     v = thd[:, None] * radius * t_hat
     a = (thdd * radius)[:, None] * t_hat - (thd**2 * radius)[:, None] * r_hat
-    q0 = np.asarray(quat0, float) / np.linalg.norm(quat0)
+    q0 = _unit(quat0, "quat0", 4)
     quat = quat_mul(axis_angle_quat(n, th - theta0), q0)
     return Segment(p=p, v=v, a=a, quat=quat, omega=thd[:, None] * n, omega_dot=thdd[:, None] * n,
                    rot=np.full(len(t), float(rot)), t=t)
