@@ -66,10 +66,8 @@ def arm_from_spec(spec: str):
     if spec.startswith("urdf:"):
         from ._urdf import from_urdf
 
-        parts = spec.split(":")
-        if len(parts) != 3 or not parts[1] or not parts[2]:
-            raise ValueError(f"--arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
-        return from_urdf(parts[1], tip_link=parts[2])
+        path, tip = _urdf_parts(spec)
+        return from_urdf(path, tip_link=tip)
     try:
         dof = int(spec)
     except ValueError:
@@ -77,9 +75,18 @@ def arm_from_spec(spec: str):
     return thesis_arm(dof)
 
 
+def _urdf_parts(spec: str) -> tuple[str, str]:
+    """``(PATH, TIP_LINK)`` of a ``urdf:PATH:TIP_LINK`` arm spec (``ValueError`` if malformed)."""
+    parts = spec.split(":")
+    if len(parts) != 3 or not parts[1] or not parts[2]:
+        raise ValueError(f"arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
+    return parts[1], parts[2]
+
+
 def _arm_label(spec: str) -> str:
     if spec.startswith("urdf:"):
-        return Path(spec.split(":")[1]).stem + "-" + spec.split(":")[2]
+        path, tip = _urdf_parts(spec)
+        return Path(path).stem + "-" + tip
     return f"{spec}dof"
 
 
@@ -89,11 +96,9 @@ def _check_arm_spec(spec: str) -> None:
         return
     if not spec.startswith("urdf:"):
         raise ValueError(f"arms: {spec!r} is neither 7, 8, 9 nor urdf:PATH:TIP_LINK")
-    parts = spec.split(":")
-    if len(parts) != 3 or not parts[1] or not parts[2]:
-        raise ValueError(f"arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
-    if not Path(parts[1]).is_file():
-        raise ValueError(f"arms: URDF file {parts[1]!r} of {spec!r} not found")
+    path, _ = _urdf_parts(spec)
+    if not Path(path).is_file():
+        raise ValueError(f"arms: URDF file {path!r} of {spec!r} not found")
 
 
 def _arm_identity(spec: str):
@@ -103,7 +108,7 @@ def _arm_identity(spec: str):
         return spec
     import hashlib
 
-    return {"spec": spec, "sha256": hashlib.sha256(Path(spec.split(":")[1]).read_bytes()).hexdigest()}
+    return {"spec": spec, "sha256": hashlib.sha256(Path(_urdf_parts(spec)[0]).read_bytes()).hexdigest()}
 
 
 @dataclasses.dataclass(frozen=True)
