@@ -32,7 +32,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
 from ._math import as_float
 from ._math import safe_norm
-from ._metrics import GuidanceTermination, guidance_termination, path_length
+from ._metrics import GuidanceTermination, guidance_termination, path_length, position_errors
 from ._obstacles import ObstacleSet
 
 __all__ = [
@@ -242,19 +242,20 @@ def _perfect_core(x0, goal_p, obs, params: PerfectParams) -> PerfectResult:
         x1 = sol.ys[-1]
         acc = sol.stats["num_accepted_steps"]
         dt_next = jnp.minimum(ts / jnp.maximum(acc, 1).astype(dtype), ts)
-        failed = sol.result != diffrax.RESULTS.successful
-        return (x1, buf, dt_next), (x1, x_min, valid, buf.p, buf.mask, sol.stats["num_steps"], failed)
+        stopped = sol.result != diffrax.RESULTS.successful
+        return (x1, buf, dt_next), (x1, x_min, valid, buf.p, buf.mask, sol.stats["num_steps"], stopped)
 
-    _, (xs, est, ok, bp, bm, nsteps, failed) = jax.lax.scan(body, (x0, buf0, ts), jnp.arange(params.n_samples))
+    _, (xs, est, ok, bp, bm, nsteps, stopped) = jax.lax.scan(body, (x0, buf0, ts), jnp.arange(params.n_samples))
     finite = jnp.all(jnp.isfinite(xs), axis=-1)
-    goal_err = jnp.where(finite, safe_norm(jnp.where(finite[:, None], xs - goal_p, 0.0), axis=-1), jnp.inf)
+    goal_err = position_errors(xs, jnp.broadcast_to(goal_p, xs.shape))  # NaN where x is
+    goal_err = jnp.where(jnp.isfinite(goal_err), goal_err, jnp.inf)  # as the simulator's guided runs
     dmin = jax.vmap(lambda x: min_distance(obs, x))(xs)
     # the stop ignoring failures first, then collisions and failed solves up to it (the same
     # order as the simulator's guided runs: what happens after the stop does not count)
     term0 = guidance_termination(goal_err, ts, False, hold_samples=params.hold_samples, radius=params.radius)
     rows = term0.mask
     collided = jnp.any(rows & ~(dmin >= 0.0))  # NaN distances count as inside
-    short = rows & (failed | ~finite)
+    short = rows & (stopped | ~finite)
     k = jnp.arange(params.n_samples)
     # the approach: the samples before the held streak's first one (time_to_goal = (k + 1) ts)
     enter = jnp.where(term0.held, jnp.round(term0.time_to_goal / ts).astype(jnp.int32) - 1, params.n_samples)
