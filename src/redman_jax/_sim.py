@@ -707,10 +707,9 @@ def _initial_state(arm, controller, q0, qd0, dtype):
 
 def _diverged(ys: _Y, status, rows=None):
     """The run diverged: its divergence flag grew, a state is not finite or the solver stopped
-    (``status``). ``rows`` ``(N,)``: count only these saved rows (a guided run up to its stop)."""
-    if rows is None:
-        finite = _all_finite((ys.q, ys.qd))
-        return (jnp.max(ys.f[..., 2]) > 0) | (~finite) | (status != 0)
+    (``status``). ``rows`` ``(N,)``: count only these saved rows (default all; a guided run up to
+    its stop)."""
+    rows = jnp.ones(ys.q.shape[0], bool) if rows is None else rows
     finite = jnp.all(jnp.where(rows[:, None], jnp.isfinite(ys.q) & jnp.isfinite(ys.qd), True))
     flag = jnp.max(jnp.where(rows, ys.f[:, 2], 0.0)) > 0  # NaN never compares > 0: caught by finite
     return flag | (~finite) | (status != 0)
