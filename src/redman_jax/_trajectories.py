@@ -119,6 +119,14 @@ def quat_from_rot(R: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+def _point(x, name: str) -> np.ndarray:
+    """``x`` as a finite 3-vector; ``ValueError`` naming ``name`` otherwise."""
+    x = np.asarray(x, float)
+    if x.shape != (3,) or not np.all(np.isfinite(x)):
+        raise ValueError(f"{name}: expected a finite 3-vector, got {x}")
+    return x
+
+
 def _unit(x, name: str, size: int = 3) -> np.ndarray:
     """``x / |x|`` for a finite, non-zero ``size``-vector; ``ValueError`` naming ``name`` otherwise
     (a zero or NaN direction would give NaN samples)."""
@@ -255,12 +263,7 @@ def line_segment(p_a, p_b, quat_a=None, quat_b=None, *, rot: float = 0.0, v_max:
 
     Raises ``ValueError`` for non-finite points or a zero-length segment that must rotate.
     """
-    p_a = np.asarray(p_a, float)
-    p_b = np.asarray(p_b, float)
-    if p_a.shape != (3,) or not np.all(np.isfinite(p_a)):
-        raise ValueError(f"p_a: expected a finite 3-vector, got {p_a}")
-    if p_b.shape != (3,) or not np.all(np.isfinite(p_b)):
-        raise ValueError(f"p_b: expected a finite 3-vector, got {p_b}")
+    p_a, p_b = _point(p_a, "p_a"), _point(p_b, "p_b")
     qa = np.array([1.0, 0, 0, 0]) if quat_a is None else _unit(quat_a, "quat_a", 4)
     qb = qa if quat_b is None else _unit(quat_b, "quat_b", 4)
     d = p_b - p_a
@@ -304,9 +307,7 @@ def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angl
     Orientation ``R(th) = Rot(n, th - th0) R0`` (``R0`` from ``quat0``), so ``omega = th_dot n``
     and ``omega_dot = th_ddot n``.
     """
-    c = np.asarray(center, float)
-    if c.shape != (3,) or not np.all(np.isfinite(c)):
-        raise ValueError(f"center: expected a finite 3-vector, got {c}")
+    c = _point(center, "center")
     n = _unit(normal, "normal")
     e1 = _unit(e1, "e1")
     e1 = e1 - (e1 @ n) * n
