@@ -244,6 +244,27 @@ def test_wilson_interval_matches_scipy():
         assert lo == pytest.approx(ref.low, abs=1e-3) and hi == pytest.approx(ref.high, abs=1e-3)
 
 
+def test_wilson_interval_ends_are_exact():
+    # every success (or none) must keep 100 % (0 %) inside: rounding gave 60/60 an upper bound of
+    # 0.9999999999999999, and the report called the thesis's 100 % (R2.c) "differs"
+    for n in range(1, 400):
+        assert wilson_interval(n, n)[1] == 1.0 and wilson_interval(0, n)[0] == 0.0, n
+        lo, hi = wilson_interval(max(1, n // 2), n) if n > 1 else (0.5, 0.5)
+        assert 0.0 < lo <= hi < 1.0
+
+
+def test_dof_ordering_skips_an_arm_without_osc_runs(tmp_path):
+    rows = synthetic_study(tmp_path)
+    keep = [r for r in rows if not (r["arm"] == "8dof" and r["controller"] in ("velocity", "acceleration"))]
+    write_table(tmp_path, keep)
+    c = _claims(tmp_path)["R3.d"]
+    assert c.verdict == AGREES, c  # 7-DOF fails more than 9-DOF; the 8-DOF arm has no rate
+    assert "8-DOF" not in c.ours
+    only_7 = [r for r in keep if not (r["arm"] == "9dof" and r["controller"] in ("velocity", "acceleration"))]
+    write_table(tmp_path, only_7)
+    assert _claims(tmp_path)["R3.d"].verdict == NOT_EVALUATED
+
+
 def test_pooled_errors_and_headline_table(tmp_path):
     rows = synthetic_study(tmp_path)
     d = load_study(tmp_path)

@@ -448,7 +448,10 @@ def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # exact ends: rounding leaves e.g. 60/60 at 0.9999999999999999, which would exclude a 100 %
+    lo = 0.0 if k == 0 else max(0.0, centre - half)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return lo, hi
 
 
 def _not_eval(cid, statement, thesis, reason) -> Claim:
@@ -615,11 +618,12 @@ def _claims_r3(d: StudyData) -> list[Claim]:
                          f"cases without any non-JS failure: {', '.join(none)}" if none else ""))
     dofs = sorted((_dof(a), a) for a in d.arms if _dof(a) is not None)
     stmt = "Failures increase as the DOF decreases (velocity + acceleration OSC)"
-    if len(dofs) < 2 or not osc:
+    # an arm without OSC runs has no rate to order
+    rates = [r for r in ((dof, *_fail_rate(d, arms=a, ctrls=OSC)) for dof, a in dofs) if r[2]] if osc else []
+    if len(rates) < 2:
         out.append(_not_eval("R3.d", stmt, "7 > 8 > 9 DOF", "needs at least two thesis arms with OSC runs"))
     else:
-        rates = [(dof, *_fail_rate(d, arms=a, ctrls=OSC)) for dof, a in dofs]
-        fr = [k / n if n else math.nan for _, k, n in rates]
+        fr = [k / n for _, k, n in rates]
         mono = all(fr[i] >= fr[i + 1] for i in range(len(fr) - 1)) and fr[0] > fr[-1]
         out.append(Claim("R3.d", stmt, "7 > 8 > 9 DOF",
                          ", ".join(f"{dof}-DOF {k}/{n}" for dof, k, n in rates),

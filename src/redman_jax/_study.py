@@ -58,8 +58,9 @@ RUN_COLUMNS = (
 )
 
 
-def arm_from_spec(spec: str):
-    """``"7"``/``"8"``/``"9"`` -> the thesis arm; ``"urdf:PATH:TIP"`` -> :func:`from_urdf`."""
+def arm_from_spec(spec: str, option: str = "--arms"):
+    """``"7"``/``"8"``/``"9"`` -> the thesis arm; ``"urdf:PATH:TIP"`` -> :func:`from_urdf`.
+    ``option``: the command-line option named in the error message."""
     from ._robot import thesis_arm
 
     spec = str(spec).strip()
@@ -71,7 +72,7 @@ def arm_from_spec(spec: str):
     try:
         dof = int(spec)
     except ValueError:
-        raise ValueError(f"--arms: {spec!r} is neither a thesis DOF (7, 8, 9) nor urdf:PATH:TIP") from None
+        raise ValueError(f"{option}: {spec!r} is neither a thesis DOF (7, 8, 9) nor urdf:PATH:TIP") from None
     return thesis_arm(dof)
 
 
