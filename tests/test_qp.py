@@ -170,3 +170,53 @@ def test_settings_change_without_recompile():
     n0 = f._cache_size()
     f(P, c, A, l, h, lb, ub, QPSettings(eps_abs=jnp.asarray(1e-10), eps_rel=jnp.asarray(1e-10)))
     assert f._cache_size() == n0
+
+
+def test_far_bound_does_not_activate_a_nearly_active_row():
+    """A bound far away (|g| = 10..1e5) must not change which other rows are active: the nearly
+    active x0 <= 1.0001 (slack 1e-4 at the optimum x0 = 1) stays inactive, so x is exact and
+    dx0/dc0 = 1 (it was 0 with one slack scale for all rows)."""
+    for ub1 in (np.inf, 10.0, 1e5):
+        def x0_of(c0):
+            return solve_qp(jnp.eye(2), jnp.stack([-c0, jnp.asarray(-1.0)]), ub=jnp.array([1.0001, ub1])).x[0]
+
+        assert float(x0_of(1.0)) == pytest.approx(1.0, abs=1e-12), ub1
+        assert float(jax.grad(x0_of)(1.0)) == pytest.approx(1.0, abs=1e-9), ub1
+
+
+@pytest.mark.parametrize("w", [1e-2, 1e-4, 1e-6])
+def test_narrow_bounds_pick_the_right_side(w):
+    """min 1/2 x^2 + x on 0 <= x <= w: x* = 0 at the lower bound, y_box = -1, dx*/dlb = 1, however
+    narrow the box (both sides looked active and the upper one won below w ~ 1e-5); likewise for a
+    narrow general row 0 <= x0 + x1 <= w."""
+    sol = lambda lb: solve_qp(jnp.eye(1), jnp.array([1.0]), lb=jnp.stack([lb]), ub=jnp.array([w]))
+    s = sol(jnp.asarray(0.0))
+    assert bool(s.converged)
+    assert abs(float(s.x[0])) <= 1e-12 and float(s.y_box[0]) == pytest.approx(-1.0, abs=1e-9)
+    assert float(jax.grad(lambda lb: sol(lb).x[0])(0.0)) == pytest.approx(1.0, abs=1e-9)
+    r = solve_qp(jnp.eye(2), jnp.array([1.0, 1.0]), A=jnp.array([[1.0, 1.0]]), l=jnp.array([0.0]),
+                 h=jnp.array([w]))
+    assert np.abs(np.asarray(r.x)).max() <= 1e-12 and float(r.y[0]) == pytest.approx(-1.0, abs=1e-9)
+
+
+def test_converged_means_optimal_after_any_iteration_count():
+    """Stopped after 1..11 iterations, a result flagged converged is the optimum: the flag needs the
+    complementarity gap unless an accepted polish (a KKT point) proves it (a primal-feasible iterate
+    with duals z >= 0 has a zero dual residual without being optimal; such iterates were flagged
+    0.2-0.6 away from the optimum). The bound: an iterate that meets the tolerances has an
+    objective within the duality gap s'z <= M (eps_abs + eps_rel |f|) of the optimum (M = 8 rows)."""
+    f = lambda P, c, x: 0.5 * x @ P @ x + c @ x
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        J = rng.normal(size=(3, 4))
+        P, c = J.T @ J + 1e-2 * np.eye(4), rng.normal(size=4) * 3
+        lb, ub = -0.3 * np.ones(4), 0.3 * np.ones(4)
+        ref = np.asarray(solve_qp(P, c, lb=lb, ub=ub).x)
+        for polish in (False, True):
+            for it in range(1, 12):
+                s = solve_qp(P, c, lb=lb, ub=ub, settings=QPSettings(max_iter=it, polish=polish))
+                if bool(s.converged):
+                    x = np.asarray(s.x)
+                    assert np.all(x >= lb - 1e-9) and np.all(x <= ub + 1e-9), (polish, it)
+                    bound = 8 * (1e-9 + 1e-9 * abs(f(P, c, ref))) + 1e-12
+                    assert f(P, c, x) - f(P, c, ref) <= bound, (polish, it)

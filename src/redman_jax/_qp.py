@@ -256,15 +256,29 @@ def _ipm(P, c, rows: _Rows, settings: QPSettings):
 
 
 def _active_set(rows: _Rows, s, z):
-    """Row ``i`` is active when ``z_i / z_scale > s_i / s_scale``: ``s > z`` on the central path
-    (``s_i z_i = mu``), made scale-aware so that duals of size ``|c|`` do not make nearly active rows
-    with small multipliers look active (and the other way round)."""
+    """Row ``i`` is active when ``z_i / z_scale > s_i / max(1, |g_i|)``: ``s > z`` on the central
+    path (``s_i z_i = mu``), made scale-aware so that duals of size ``|c|`` do not make nearly
+    active rows with small multipliers look active (and the other way round). The slack is scaled
+    by its own row's bound, so that one far-off bound does not make a nearly active row look active.
+
+    Of a pair of distinct bounds (``l_i < h_i``, ``lb_j < ub_j``) at most one side is active: where
+    both pass the test (a narrow pair), the side with the larger dual. Both sides stay active only
+    for equal bounds (an equality)."""
     m = rows.A.shape[0]
     n = rows.A.shape[1]
     z_scale = jnp.maximum(1.0, jnp.max(jnp.where(rows.mask, z, 0.0), initial=0.0))
-    s_scale = jnp.maximum(1.0, jnp.max(jnp.where(rows.mask, jnp.abs(rows.g), 0.0), initial=0.0))
+    s_scale = jnp.maximum(1.0, jnp.abs(rows.g))
     act = rows.mask & (z / z_scale > s / s_scale)
-    return act[:m], act[m:2 * m], act[2 * m:2 * m + n], act[2 * m + n:]
+
+    def one_side(au, al, zu, zl, gu, gl):
+        equal = gu + gl == 0.0  # g = [h; -l] or [ub; -lb]: equal bounds
+        both = au & al & ~equal
+        return au & ~(both & (zl > zu)), al & ~(both & (zu >= zl))
+
+    act_u, act_l = one_side(act[:m], act[m:2 * m], z[:m], z[m:2 * m], rows.g[:m], rows.g[m:2 * m])
+    fix_u, fix_l = one_side(act[2 * m:2 * m + n], act[2 * m + n:], z[2 * m:2 * m + n], z[2 * m + n:],
+                            rows.g[2 * m:2 * m + n], rows.g[2 * m + n:])
+    return act_u, act_l, fix_u, fix_l
 
 
 def _kkt_matrix(P, A, act_u, act_l, fix_u, fix_l):
@@ -341,6 +355,7 @@ def qp_residuals(P, c, A, l, h, lb, ub, x, y, y_box):
     return primal, dual
 
 
+@eqx.filter_jit
 def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
              settings: QPSettings = QPSettings()) -> QPSolution:
     """Solve ``min 1/2 x'Px + c'x  s.t.  l <= A x <= h,  lb <= x <= ub`` (see the module docstring).
@@ -353,6 +368,10 @@ def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
     differentiation at the solution; see the module docstring), jit- and vmap-able.
 
     **Raises:** ``ValueError`` for inconsistent shapes (at trace time).
+
+    Jitted (``equinox.filter_jit``): called eagerly in a Python loop it compiles once per shape
+    and ``settings.max_iter`` (its ``lax.while_loop`` body is a new closure at every trace, which
+    compiled anew on every call and exhausted LLVM's memory after some hundred calls).
     """
     P = jnp.asarray(P)
     c = jnp.asarray(c)
@@ -407,7 +426,11 @@ def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
     y_box = _box_dual(P, c, A, x, y, fix_u, fix_l) if settings.polish else yb
     gap = jnp.sum(jnp.where(rows.mask, s * z, 0.0)) / jnp.maximum(jnp.sum(rows.mask), 1)
     eps_abs, eps_rel = _default_tols(dtype, settings)
-    converged = ok_ip | ((primal <= eps_abs) & (dual <= eps_abs))
+    # An accepted polish is a KKT point (active rows met exactly with duals of the right sign,
+    # inactive rows feasible with zero dual), so its residuals alone prove optimality; an
+    # interior-point iterate also needs its complementarity gap (ok_ip).
+    polished_ok = (use & (primal <= eps_abs) & (dual <= eps_abs)) if settings.polish else False
+    converged = ok_ip | polished_ok
     return QPSolution(x=x, y=y, y_box=y_box, primal_residual=primal, dual_residual=dual, gap=gap,
                       iterations=it, converged=converged)
 
