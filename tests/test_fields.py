@@ -285,6 +285,34 @@ def test_points_min_distance_equals_per_point_minimum(rng):
     d32 = np.asarray(f(obs32, jnp.asarray(xs, jnp.float32)))
     assert d32.dtype == np.float32
     np.testing.assert_allclose(d32, ref, atol=1e-5)
+    # float32 points with the float64 obstacles (the scan's carry changed dtype): float64 distances
+    mixed = np.asarray(f(obs, jnp.asarray(xs, jnp.float32)))
+    assert mixed.dtype == np.float64
+    np.testing.assert_allclose(mixed, ref, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind, dims, x, normal", [
+    ("boxes", (1.0, 1.0, 1.0), (0.2, 0.3, 1.0), (0.0, 0.0, 1.0)),  # on a face
+    ("boxes", (0.5, 0.2, 0.3), (-0.5, 0.1, 0.0), (-1.0, 0.0, 0.0)),
+    ("cylinders", (0.3, 0.5, 0.0), (0.3, 0.0, 0.1), (1.0, 0.0, 0.0)),  # on the mantle
+    ("cylinders", (0.3, 0.5, 0.0), (0.1, 0.1, -0.5), (0.0, 0.0, -1.0)),  # on a cap
+])
+def test_normal_on_the_surface_is_the_unit_face_normal(kind, dims, x, normal):
+    """Exactly on a face the normal (autodiff of the sdf) is the unit face normal, as just outside
+    and just inside: min(m, 0) split its derivative at m = 0 and gave half of it, halving the
+    repulsive force there. The structure-of-arrays normals agree."""
+    from redman_jax._fields import points_sdf_and_normals
+
+    obs = make_obstacles(**{kind: [(np.eye(3), np.zeros(3), np.asarray(dims)[:3 if kind == "boxes" else 2])]})
+    for dx in (0.0, 1e-9, -1e-9):
+        xx = jnp.asarray(x) + dx * jnp.asarray(normal)
+        d, n = obstacle_sdf_and_normals(obs, xx)
+        k = int(np.argmin(np.asarray(d)))
+        assert float(d[k]) == pytest.approx(dx, abs=1e-12)
+        np.testing.assert_allclose(np.asarray(n[k]), normal, atol=1e-12)
+    d2, n2 = points_sdf_and_normals(obs, jnp.asarray(x)[None])
+    k = int(np.argmin(np.asarray(d2[0])))
+    np.testing.assert_allclose(np.asarray(n2[0, k]), normal, atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", ["spheres", "boxes", "cylinders"])
@@ -479,3 +507,11 @@ def test_bad_parameters_raise():
         FieldParams(amp=float("nan"))
     with pytest.raises(ValueError, match="form"):
         obstacle_field_gradient(_scene(), jnp.zeros(3), 0.05, 0.75, form="minus2")
+
+
+def test_obstacle_sizes_are_checked_naming_the_entry():
+    """Too many sizes named the entry nowhere (a NumPy broadcasting error); too few or bad ones did."""
+    with pytest.raises(ValueError, match=r"boxes\[0\]\.dims: at most 3"):
+        make_obstacles(boxes=[(np.eye(3), np.zeros(3), [0.1, 0.1, 0.1, 0.1])])
+    with pytest.raises(ValueError, match=r"cylinders\[1\]\.dims"):
+        make_obstacles(cylinders=[(np.eye(3), np.zeros(3), [0.1, 0.2]), (np.eye(3), np.zeros(3), [0.1])])

@@ -119,9 +119,11 @@ def _family(items, capacity, kind):
             raise ValueError(f"{kind}[{k}].R: not a proper 3x3 rotation")
         if pk.shape != (3,) or not np.all(np.isfinite(pk)):
             raise ValueError(f"{kind}[{k}].p: expected a finite 3-vector")
+        need = {"spheres": 1, "boxes": 3, "cylinders": 2}[kind]
+        if dk.size > 3:
+            raise ValueError(f"{kind}[{k}].dims: at most 3 sizes, got {dk}")
         dk3 = np.zeros(3)
         dk3[: dk.size] = dk.ravel()
-        need = {"spheres": 1, "boxes": 3, "cylinders": 2}[kind]
         if dk.size < need or np.any(dk3[:need] <= 0) or not np.all(np.isfinite(dk3)):
             raise ValueError(f"{kind}[{k}].dims: need {need} positive finite sizes, got {dk}")
         R[k], p[k], dims[k], mask[k] = Rk, pk, dk3, True
@@ -338,18 +340,24 @@ def _vmax0_norm(u):
     return safe_norm(jnp.maximum(u, 0.0))
 
 
+def _min0(m):
+    """``min(m, 0)`` whose derivative is 1 at ``m = 0`` (``jnp.minimum`` splits a tie, 1/2): on a
+    surface the outer term's gradient vanishes, so this one carries the unit normal."""
+    return jnp.where(m <= 0.0, m, 0.0)
+
+
 def sphere_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     return safe_norm(x_local) - dims[0]
 
 
 def box_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     u = jnp.abs(x_local) - dims
-    return _vmax0_norm(u) + jnp.minimum(jnp.max(u), 0.0)
+    return _vmax0_norm(u) + _min0(jnp.max(u))
 
 
 def cylinder_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     d = jnp.stack([safe_norm(x_local[:2]) - dims[0], jnp.abs(x_local[2]) - dims[1]])
-    return _vmax0_norm(d) + jnp.minimum(jnp.max(d), 0.0)
+    return _vmax0_norm(d) + _min0(jnp.max(d))
 
 
 def _family_sdf(s: Shapes, x: Float[Array, "3"], fn) -> Float[Array, " K"]:
@@ -402,7 +410,9 @@ def points_min_distance(obs: ObstacleSet, points: Float[Array, "m 3"]) -> Float[
     """
     points = jnp.asarray(points)
     X = tuple(points[:, j] for j in range(3))
-    best = jnp.full(points.shape[:1], BIG_DISTANCE, points.dtype)
+    # the carry in the common dtype (float32 points, float64 obstacles: float64 distances)
+    dtype = jnp.result_type(points.dtype, *(getattr(obs, k).p.dtype for k in ("spheres", "boxes", "cylinders")))
+    best = jnp.full(points.shape[:1], BIG_DISTANCE, dtype)
     for i, kind in enumerate(("spheres", "boxes", "cylinders")):
         if getattr(obs, kind).capacity == 0:
             continue
