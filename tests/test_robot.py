@@ -98,6 +98,7 @@ def _np_set(x, index, value):
         ("masses", lambda x: x[:3]),
         ("screw_axes", lambda x: _np_set(x, (0, 2), 2.0)),  # non-unit revolute axis
         ("screw_axes", lambda x: _np_set(x, (1, 0), 1.0)),  # prismatic with omega != 0
+        ("screw_axes", lambda x: _np_set(x, (0, 5), 0.5)),  # revolute Rz with pitch (helical)
         ("masses", lambda x: _np_set(x, 3, 0.0)),
         ("masses", lambda x: _np_set(x, 3, -1.0)),
         ("inertias", lambda x: _np_set(x, (2, 0, 1), 1e-3)),  # not symmetric
@@ -109,7 +110,7 @@ def _np_set(x, index, value):
     ],
 )
 def test_arm_validation_names_field(field, change):
-    with pytest.raises(ValueError, match=field.split("_")[0] if field == "q_min" else field):
+    with pytest.raises(ValueError, match=f"Arm.{field}"):
         _with(**{field: change})
 
 

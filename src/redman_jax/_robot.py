@@ -146,6 +146,9 @@ def _validate_arm(arm: Arm) -> None:
                 )
         elif abs(np.linalg.norm(w) - 1.0) > 1e-6:
             raise ValueError(f"Arm.screw_axes[{i}]: a revolute joint needs a unit omega, got {w}")
+        elif abs(float(w @ v)) > 1e-6:  # v = -omega x r is orthogonal to omega; else a helical joint
+            raise ValueError(f"Arm.screw_axes[{i}]: a revolute joint needs v orthogonal to omega "
+                             f"(v = -omega x r, zero pitch), got omega . v = {float(w @ v):.3g}")
     for field in ("home_frames", "ee_home"):
         frames = vals[field].reshape(-1, 4, 4)
         for k, T in enumerate(frames):
