@@ -392,3 +392,44 @@ def test_bad_parameters_raise():
         rrt_reference(key, obs, start, goal, QUAT[:3], 0.2, 0.01, 100, PARAMS)
     with pytest.raises(ValueError, match="batch"):
         plan_rrt_batch(key[None], obs, start[None], goal[None], PARAMS, batch="pmap")
+
+
+def test_rrt_star_costs_exact_whatever_the_path_buffer():
+    """The rewired tree's costs come from pointer jumping, whose rounds must cover the tree's depth
+    (bounded by max_nodes, not by path_capacity): with path_capacity 2 or 4 the costs were wrong
+    and rewiring closed cycles (373 of 510 nodes never reached the root)."""
+    obs = make_obstacles(spheres=[(np.eye(3), [0.5, 0.1, 1.05], [0.1])], capacities=(1, 1, 1))
+    start, goal = np.array([0.0, 0.0, 1.2]), np.array([1.0, 0.2, 0.9])
+    P = RRTParams(rrt_star=True, max_nodes=1024, path_capacity=2, max_iter=1500, goal_bias=0.0)
+    r = jax.device_get(jax.jit(plan_rrt)(jax.random.PRNGKey(1), obs, start, goal, P))
+    n = int(r.n_nodes)
+    nodes, parent, cost = r.nodes[:n], r.parent[:n], r.node_cost[:n]
+    true, depth = np.zeros(n), np.zeros(n, int)
+    for i in range(1, n):  # walk to the root on the host (a cycle never gets there)
+        k = i
+        while k != 0 and depth[i] <= n:
+            true[i] += np.linalg.norm(nodes[k] - nodes[parent[k]])
+            depth[i] += 1
+            k = parent[k]
+        assert k == 0, f"node {i} is on a cycle"
+    assert depth.max() > 4  # deeper than the path buffer's pointer-jumping rounds covered
+    np.testing.assert_allclose(cost, true, atol=1e-12)
+
+
+def test_mixed_dtypes_integer_points_and_empty_obstacle_sets():
+    """float32 points with float64 obstacles plan a float32 tree (the while loop's carry changed
+    dtype); integer points are promoted; a set without any slot plans like an empty scene."""
+    obs, start, goal = _simple_scene(1)
+    r = plan_rrt(jax.random.PRNGKey(0), obs, jnp.asarray(start, jnp.float32), jnp.asarray(goal, jnp.float32), PARAMS)
+    assert bool(r.success) and r.path.dtype == jnp.float32
+    r = plan_rrt(jax.random.PRNGKey(0), make_obstacles(), [0, 0, 1], [1, 0, 1], PARAMS)
+    assert bool(r.success) and jnp.issubdtype(r.path.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(r.path)[int(r.n_path) - 1], [1, 0, 1], atol=1e-12)
+
+
+def test_safety_must_cover_the_edge_check_spacing():
+    """Check points edge_res apart leave safety - edge_res / 2 between them: a 2 mm wall passed
+    between two points with safety 2 mm; such a setting is refused, naming the field."""
+    with pytest.raises(ValueError, match="RRTParams.safety"):
+        RRTParams(safety=0.002)
+    RRTParams(safety=0.006)  # just above edge_res / 2 = 0.005

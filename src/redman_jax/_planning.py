@@ -50,7 +50,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._math import safe_norm
-from ._obstacles import ObstacleSet, obstacle_distances
+from ._obstacles import BIG_DISTANCE, ObstacleSet, obstacle_distances
 from ._scenario import Reference
 
 __all__ = [
@@ -93,7 +93,8 @@ class RRTParams(eqx.Module):
     Arrays (changing them never recompiles):
 
     * ``step`` 0.05 m: steering step; ``goal_bias`` 0.10: probability of sampling the goal;
-    * ``safety`` 0.15 m: clearance every tree edge keeps from every obstacle (inflation);
+    * ``safety`` 0.15 m: clearance every tree edge keeps from every obstacle (inflation) at its
+      check points; between them at least ``safety - edge_res / 2`` (so ``safety > edge_res / 2``);
     * ``box_margin`` 0.3 m: the sampling box is ``AABB(start, goal, obstacles)`` grown by it;
     * ``edge_res`` 0.01 m: largest spacing of the edge collision checks;
     * ``goal_tol`` 0.05 m: a node this close to the goal (with a free edge) connects it;
@@ -205,6 +206,11 @@ class RRTParams(eqx.Module):
         if step is not None and res is not None and np.any(step / (self.edge_points - 1) > res * (1 + 1e-9)):
             raise ValueError(f"RRTParams.edge_points: {self.edge_points} points check a {step} m "
                              f"edge more sparsely than edge_res = {res} m")
+        safety = _concrete(self.safety)
+        if safety is not None and res is not None and np.any(safety <= res / 2):
+            raise ValueError(f"RRTParams.safety: must exceed edge_res / 2 ({safety} <= {res} / 2): an "
+                             "edge is checked at points edge_res apart, so between them it keeps only "
+                             "safety - edge_res / 2, and a thinner wall could fall between two points")
         if self.rrt_star and step is not None and rad is not None:
             if np.any(rad < step):
                 raise ValueError(f"RRTParams.near_radius: must be >= step ({rad} < {step})")
@@ -291,13 +297,18 @@ def sampling_box(obs: ObstacleSet, start: Float[Array, "3"], goal: Float[Array, 
     hi = jnp.maximum(start, goal)
     lo_o = jnp.where(mask[:, None], centres - ext, lo)
     hi_o = jnp.where(mask[:, None], centres + ext, hi)
-    lo = jnp.minimum(lo, jnp.min(lo_o, axis=0)) - margin
-    hi = jnp.maximum(hi, jnp.max(hi_o, axis=0)) + margin
+    lo = jnp.minimum(lo, jnp.min(lo_o, axis=0, initial=jnp.inf)) - margin  # initial: no slots at all
+    hi = jnp.maximum(hi, jnp.max(hi_o, axis=0, initial=-jnp.inf)) + margin
     return lo, hi
 
 
 def _clearance(obs: ObstacleSet, pts: Float[Array, "m 3"]) -> Float[Array, " m"]:
-    return jax.vmap(lambda x: jnp.min(obstacle_distances(obs, x)))(pts)
+    return jax.vmap(lambda x: _min_distance(obs, x))(pts)
+
+
+def _min_distance(obs: ObstacleSet, x):
+    """Smallest distance from ``x`` to any slot (``BIG_DISTANCE`` for a set without slots)."""
+    return jnp.min(obstacle_distances(obs, x), initial=BIG_DISTANCE)
 
 
 def _edge_free(obs, xa, xb, safety, n_points: int):
@@ -415,7 +426,8 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
 
     Arguments:
         key: PRNG key (one per seed).
-        obs: obstacle set; every tree edge keeps ``params.safety`` clearance from it.
+        obs: obstacle set; every tree edge keeps ``params.safety`` clearance from it at its check
+            points (at least ``safety - edge_res / 2`` between them).
         start, goal: ``(3,)`` positions [m].
         params: :class:`RRTParams` (defaults if None).
 
@@ -426,20 +438,22 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
     params = RRTParams() if params is None else params
     _check_point("start", start)
     _check_point("goal", goal)
-    start = jnp.asarray(start)
-    goal = jnp.asarray(goal, start.dtype)
-    dtype = start.dtype
+    # integer points (``[0, 0, 1]``) are promoted to the default float dtype
+    dtype = jnp.result_type(jnp.asarray(start).dtype, jnp.asarray(goal).dtype, float)
+    start = jnp.asarray(start, dtype)
+    goal = jnp.asarray(goal, dtype)
     M = params.max_nodes
     step = params.step.astype(dtype)
     safety = params.safety.astype(dtype)
     tol = params.goal_tol.astype(dtype)
     bias = params.goal_bias.astype(dtype)
     radius = params.near_radius.astype(dtype)
-    lo, hi = sampling_box(obs, start, goal, params.box_margin.astype(dtype))
+    # in the points' dtype (float32 points with float64 obstacles keep a float32 tree)
+    lo, hi = (v.astype(dtype) for v in sampling_box(obs, start, goal, params.box_margin.astype(dtype)))
     idx_all = jnp.arange(M)
 
-    goal_clear = jnp.min(obstacle_distances(obs, goal)) >= safety
-    start_clear = jnp.min(obstacle_distances(obs, start)) >= safety
+    goal_clear = _min_distance(obs, goal) >= safety
+    start_clear = _min_distance(obs, start) >= safety
 
     nodes0 = jnp.broadcast_to(start[:, None], (3, M)).astype(dtype)  # (3, M): coordinates first
     init = _TreeState(
@@ -491,7 +505,9 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
             rewire = ok & usable & (c_new + dn < st.cost[nb])
             nb_w = jnp.where(within, nb, M)  # missing entries write nowhere
             parent = parent.at[nb_w].set(jnp.where(rewire, new, parent[nb]), mode="drop")
-            rounds = max(1, math.ceil(math.log2(params.path_capacity + 1)))
+            # exact for any tree the buffer holds (depth <= max_nodes - 1 < 2**rounds); the path
+            # buffer does not bound the tree's depth
+            rounds = max(1, math.ceil(math.log2(M)))
             cost = jnp.where(jnp.any(rewire),
                              _tree_costs(nodes, parent, idx_all < st.n + ok, rounds), cost)
         else:
@@ -736,9 +752,11 @@ def sample_reference(traj: QuarticTrajectory, goal_p, goal_quat, rot_radius, ts,
     p = jnp.where(at_end[:, None], end[None, :], p)
     v = jnp.where(at_end[:, None], 0.0, v)
     a = jnp.where(at_end[:, None], 0.0, a)
-    # padding beyond a truncated reference: hold the last valid sample at rest
+    # padding beyond a truncated reference: hold the last valid sample at rest. A gather of row
+    # n - 1 (not a select against p[n - 1]): every padded row is then that row's own value, bit for
+    # bit (with a select, XLA computed `end` in two fusions that rounded 1 ulp apart)
     pad = k >= n
-    p = jnp.where(pad[:, None], p[n - 1][None, :], p)
+    p = p[jnp.minimum(k, n - 1)]
     v = jnp.where(pad[:, None], 0.0, v)
     a = jnp.where(pad[:, None], 0.0, a)
     near = safe_norm(p - goal_p) <= rot_radius
