@@ -410,7 +410,7 @@ class _TreeState(NamedTuple):
 
 
 def _check_point(name, x):
-    x_shape = jnp.shape(x)
+    x_shape = np.shape(x)  # lists too (jnp.shape warns on them)
     if x_shape[-1:] != (3,):
         raise ValueError(f"{name}: expected a 3-vector, got shape {x_shape}")
     v = _concrete(x)
