@@ -77,7 +77,7 @@ def main(argv=None) -> int:
             thesis = THESIS_GRADIENT_SUCCESS.get(case)
             lines.append([case, form, f"{s['success']}/{s['runs']}", s["collided"], s["diverged"],
                           s["time_to_goal_s"], s["final_pos_error_mm"],
-                          f"{thesis[0]}/{thesis[1]}" if thesis and len(arms) == 3 else "–"])
+                          f"{thesis[0]}/{thesis[1]}" if thesis and len(cfg.arms) == 3 else "–"])
     print(markdown(["case", "form", "success", "collided", "diverged", "time to goal [s] (successes)",
                     "final distance [mm] (all)", "thesis success (3 arms)"], lines))
     per_arm = summarise(rows, lambda r: (r["arm"], r["controller"]))
