@@ -518,10 +518,10 @@ def time_jax(arm, scen, ik, name, params):
 def jax_evals(res, N, uses_guidance, params):
     """Vector-field evaluations per member: FSAL Dopri5 or Tsit5 costs 6 per attempted step plus one at the
     start and after every jump (horizon mode: the boundaries of the run's valid samples, none in
-    the padding up to the capacity ``N``; gradient runs: every sample end of the 6 s horizon)."""
+    the padding up to the capacity ``N``; gradient runs: every sample end up to the stop rule, where
+    each member stops stepping)."""
     steps = np.asarray(res.n_steps, float)
-    restarts = params.guidance_samples if uses_guidance else np.asarray(res.n_samples, float)
-    return 6 * steps + restarts
+    return 6 * steps + np.asarray(res.n_samples, float)
 
 
 def count_evals(arm, sc, ctrl, gains, params, ik=None):
@@ -620,9 +620,11 @@ def main(argv=None):
             if gradient and case not in GRADIENT_CASES:
                 continue
             res, cold, warm = time_jax(arm, scen, ik, name, params)
-            T = (params.guidance_samples * ts * len(seeds)) if gradient else float(n_samples.sum() * ts)
+            # gradient runs: the samples up to each member's stop rule (it stops stepping there)
+            n_run = np.asarray(res.n_samples) if gradient else n_samples
+            T = float(n_run.sum() * ts)
             evals = jax_evals(res, N, gradient, params)
-            T_member = (params.guidance_samples * ts) if gradient else n_samples * ts
+            T_member = n_run * ts
             jax_eps = float(np.mean(evals / T_member))
             ok = f"{int(np.asarray(res.success).sum())}/{len(seeds)}"
             row = dict(case=case, ctrl=name, T=T, cold=cold, warm=warm, jax_cold=T / cold, jax_warm=T / warm,

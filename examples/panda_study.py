@@ -13,12 +13,13 @@ or on the command line ``redman-jax sweep --arms urdf:/.../panda.urdf:panda_hand
 high); the Panda reaches ~0.85 m from a base on the floor. Measured (seeds 1-3, 20 retries): the
 inspection and welding generators find no scene within the Panda's reach at all (reach and
 start-protection rules), and the warehouse scenes generate but their IK trajectories do not
-validate (collisions, goals not reached). Moreover ``from_urdf``'s default start pose (zeros
-clipped into the limits) puts joint 4 on its upper limit up to rounding, where the null-space
-joint-limit policy (3.35) evaluates to about -1.6e25 rad/s^2: the OSC controllers with their
-default null-space policies diverge in the first sample there (flagged ``diverged``), while the
-velocity OSC with ``nullspace="none"`` tracks the same warehouse reference to 6 mm. Runs without a validated scenario stay in the table with
-``scenario_valid = False``; this script says so rather than reporting them as controller results.
+validate (collisions, goals not reached). ``from_urdf``'s default start pose is zeros clipped
+into the limits and kept 5 % of each range away from them (joint 4 of the Panda starts at
+-0.22 rad, its upper limit -0.07 rad), and the null-space joint-limit policy (3.35) is capped at
+the value the thesis gives it beyond the limits, so a start near a limit no longer makes the OSC controllers diverge in
+their first sample (as it did when the start pose sat on the limit). Runs without a validated
+scenario stay in the table with ``scenario_valid = False``; this script says so rather than
+reporting them as controller results.
 
 Run (full: all five cases, seeds 1-20, the thesis's four controllers)::
 
