@@ -31,9 +31,11 @@ from redman_jax._pipeline import build_case
 def _per_sample_counts():
     """``_simulate_guided`` with the per-sample step counts kept (``n_steps`` becomes ``(N,)``)."""
     src = inspect.getsource(_sim._simulate_guided)
-    if src.count("n_steps=steps[0]") != 1:  # else the iteration counts below would be wrong
-        raise RuntimeError("bench_guided: _sim._simulate_guided no longer sets n_steps=steps[0]")
-    src = src.replace("n_steps=steps[0]", "n_steps=stats[:, 0] if params.mode == 'per_sample' else steps[0]")
+    # per_sample mode sums the scan's (N, 3) per-sample counts; keep them instead, so that
+    # _guided_result's n_steps = steps[0] is (N,) (the horizon stepper's batch path is unchanged)
+    if src.count("steps = stats.sum(0)") != 1:  # else the iteration counts below would be wrong
+        raise RuntimeError("bench_guided: _sim._simulate_guided no longer sets steps = stats.sum(0)")
+    src = src.replace("steps = stats.sum(0)", "steps = stats.T")
     ns = dict(_sim.__dict__)
     exec(src, ns)
     return ns["_simulate_guided"]
