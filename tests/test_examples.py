@@ -213,3 +213,20 @@ def test_ablation_tables_from_a_finished_sweep(script, monkeypatch, tmp_path, ca
     # one table row per variant: 3 successes of 3 runs (the jac table counts failures, 0/3)
     cell = "| 0/3 |" if script == "ablation_jac_scaling" else "| 3/3 |"
     assert sum(line.startswith("| simple |") and cell in line for line in out.splitlines()) == len(mod.VARIANTS)
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "benchmarks").glob("bench_*.py")))
+def test_benchmark_help(script):
+    """Every benchmark imports (its names still exist in the package) and parses its options."""
+    proc = run(f"benchmarks/{script}", "--help")
+    assert "usage" in proc.stdout.lower()
+
+
+def test_bench_guided_patch_applies(monkeypatch):
+    """bench_guided keeps the per-sample step counts by patching one line of the simulator's
+    source; when that line moved, the benchmark stopped before any timing."""
+    import importlib
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    fn = importlib.import_module("bench_guided")._per_sample_counts()
+    assert callable(fn) and fn.__name__ == "_simulate_guided"
