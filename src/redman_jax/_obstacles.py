@@ -377,8 +377,9 @@ def obstacle_distances(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, "
 
 
 def min_distance(obs: ObstacleSet, x: Float[Array, "3"]) -> Float[Array, ""]:
-    """Smallest signed distance from ``x`` to any active obstacle (BIG_DISTANCE if none)."""
-    return jnp.min(obstacle_distances(obs, x))
+    """Smallest signed distance from ``x`` to any active obstacle (BIG_DISTANCE if none, a set
+    without any slot included)."""
+    return jnp.min(obstacle_distances(obs, x), initial=BIG_DISTANCE)
 
 
 def _slot_sdf(kind: str, R, p, dims, X):

@@ -50,7 +50,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._math import safe_norm
-from ._obstacles import BIG_DISTANCE, ObstacleSet, obstacle_distances
+from ._obstacles import ObstacleSet, min_distance
 from ._scenario import Reference
 
 __all__ = [
@@ -303,12 +303,7 @@ def sampling_box(obs: ObstacleSet, start: Float[Array, "3"], goal: Float[Array, 
 
 
 def _clearance(obs: ObstacleSet, pts: Float[Array, "m 3"]) -> Float[Array, " m"]:
-    return jax.vmap(lambda x: _min_distance(obs, x))(pts)
-
-
-def _min_distance(obs: ObstacleSet, x):
-    """Smallest distance from ``x`` to any slot (``BIG_DISTANCE`` for a set without slots)."""
-    return jnp.min(obstacle_distances(obs, x), initial=BIG_DISTANCE)
+    return jax.vmap(lambda x: min_distance(obs, x))(pts)
 
 
 def _edge_free(obs, xa, xb, safety, n_points: int):
@@ -452,8 +447,8 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
     lo, hi = (v.astype(dtype) for v in sampling_box(obs, start, goal, params.box_margin.astype(dtype)))
     idx_all = jnp.arange(M)
 
-    goal_clear = _min_distance(obs, goal) >= safety
-    start_clear = _min_distance(obs, start) >= safety
+    goal_clear = min_distance(obs, goal) >= safety
+    start_clear = min_distance(obs, start) >= safety
 
     nodes0 = jnp.broadcast_to(start[:, None], (3, M)).astype(dtype)  # (3, M): coordinates first
     init = _TreeState(
