@@ -32,7 +32,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
 from ._math import as_float
 from ._math import safe_norm
-from ._metrics import GuidanceTermination, guidance_termination, path_length, position_errors
+from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
 
 __all__ = [
@@ -247,8 +247,7 @@ def _perfect_core(x0, goal_p, obs, params: PerfectParams) -> PerfectResult:
 
     _, (xs, est, ok, bp, bm, nsteps, stopped) = jax.lax.scan(body, (x0, buf0, ts), jnp.arange(params.n_samples))
     finite = jnp.all(jnp.isfinite(xs), axis=-1)
-    goal_err = position_errors(xs, jnp.broadcast_to(goal_p, xs.shape))  # NaN where x is
-    goal_err = jnp.where(jnp.isfinite(goal_err), goal_err, jnp.inf)  # as the simulator's guided runs
+    goal_err = goal_errors(xs, goal_p)  # as the simulator's guided runs
     dmin = jax.vmap(lambda x: min_distance(obs, x))(xs)
     # the stop ignoring failures first, then collisions and failed solves up to it (the same
     # order as the simulator's guided runs: what happens after the stop does not count)

@@ -70,6 +70,13 @@ def position_errors(p: Float[Array, "N 3"], p_d: Float[Array, "N 3"]) -> Float[A
     return _norm(p - p_d)
 
 
+def goal_errors(p: Float[Array, "N 3"], goal_p: Float[Array, "3"]) -> Float[Array, " N"]:
+    """``|p_k - goal_p|`` per sample, ``inf`` where ``p`` is not finite (a stopped solve's rows
+    never count as at the goal): the gradient-guided runs' error."""
+    e = position_errors(p, jnp.broadcast_to(goal_p, p.shape))
+    return jnp.where(jnp.isfinite(e), e, jnp.inf)
+
+
 def orientation_errors(quat: Float[Array, "N 4"], quat_d: Float[Array, "N 4"]) -> Float[Array, " N"]:
     """``|e_o| = |vec(Q_d (x) Q^-1)| = sin(phi/2)`` per sample, unclipped (E19; hemisphere-checked)."""
     return _norm(jax.vmap(quat_error)(quat_d, quat))

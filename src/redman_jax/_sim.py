@@ -93,6 +93,7 @@ from ._math import as_float
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
+    goal_errors,
     guidance_termination,
     orientation_errors,
     path_length,
@@ -812,8 +813,7 @@ def _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est
     """The :class:`SimResult` of a gradient-guided run from its per-sample states and counters."""
     dtype = ts.dtype
     p, quat = _ee_pose_batch(arm, ys.q)
-    goal_err = position_errors(p, jnp.broadcast_to(scenario.goal_p, p.shape))
-    goal_err = jnp.where(jnp.isfinite(goal_err), goal_err, jnp.inf)
+    goal_err = goal_errors(p, scenario.goal_p)
     ori_err = orientation_errors(quat, jnp.broadcast_to(scenario.goal_quat, quat.shape))
     # Collisions and divergence up to the stop only (what happens after it does not count, in
     # either mode): first find the stop ignoring both, then read them on the rows up to it. A run
