@@ -311,20 +311,20 @@ def step_experiment(arm: Arm, step=STEP, horizon: float = 1.0, ts: float = 0.01,
         raise ValueError(f"band_fraction: must be in (0, 1), got {band_fraction}")
     sc = step_scenario(arm, step, horizon, ts, q0)
     q0 = arm.q0 if q0 is None else jnp.asarray(q0)
+    band = band_fraction * float(np.linalg.norm(np.asarray(step, float)))
     if joint_target == "newton":
         q_star, res = joint_step_target(arm, sc.goal_p, q0)
         tol = 1e-6
     else:
         q_star, res = _ik_step_target(arm, sc, q0)
         # a tenth of the settling band: a q* off by the band itself would settle late or never
-        tol = 0.1 * band_fraction * float(np.linalg.norm(np.asarray(step, float)))
+        tol = 0.1 * band
     if not float(res) < tol:
         raise ValueError(f"joint_target: {joint_target!r} did not reach the stepped position "
                          f"(residual {float(res):.2e} m)")
     N = sc.reference.capacity
     q_ref = jnp.broadcast_to(q_star, (N, arm.n_dof))
     zero = jnp.zeros_like(q_ref)
-    band = band_fraction * float(np.linalg.norm(np.asarray(step, float)))
     return StepExperiment(scenario=sc, joint_q=q_ref, joint_qd=zero, joint_qdd=zero,
                           band=jnp.asarray(band, q_ref.dtype), q0=jnp.asarray(q0, q_ref.dtype), kind="step")
 
