@@ -44,7 +44,8 @@ def test_parse_int_list():
         (["sweep", "--arms", "urdf:/nonexistent/robot.urdf:tool0"], "not found"),
         (["sweep", "--arms", ","], "arms: empty"),
         (["--seeds", "x"], "redman-jax study: error: --seeds"),
-        (["demo", "--arm", "seven"], "demo: error: --arm: 'seven'"),  # its own option, not --arms  # no subcommand: the study's options
+        (["demo", "--arm", "seven"], "demo: error: --arm: 'seven'"),  # its own option, not --arms
+        (["demo", "--arm", "urdf:robot.urdf"], "demo: error: --arm: URDF arms are given as"),  # no subcommand: the study's options
     ],
 )
 def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):

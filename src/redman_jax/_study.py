@@ -67,7 +67,7 @@ def arm_from_spec(spec: str, option: str = "--arms"):
     if spec.startswith("urdf:"):
         from ._urdf import from_urdf
 
-        path, tip = _urdf_parts(spec)
+        path, tip = _urdf_parts(spec, option)
         return from_urdf(path, tip_link=tip)
     try:
         dof = int(spec)
@@ -76,11 +76,12 @@ def arm_from_spec(spec: str, option: str = "--arms"):
     return thesis_arm(dof)
 
 
-def _urdf_parts(spec: str) -> tuple[str, str]:
-    """``(PATH, TIP_LINK)`` of a ``urdf:PATH:TIP_LINK`` arm spec (``ValueError`` if malformed)."""
+def _urdf_parts(spec: str, option: str = "arms") -> tuple[str, str]:
+    """``(PATH, TIP_LINK)`` of a ``urdf:PATH:TIP_LINK`` arm spec (``ValueError`` naming ``option``
+    if malformed)."""
     parts = spec.split(":")
     if len(parts) != 3 or not parts[1] or not parts[2]:
-        raise ValueError(f"arms: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
+        raise ValueError(f"{option}: URDF arms are given as urdf:PATH:TIP_LINK, got {spec!r}")
     return parts[1], parts[2]
 
 
