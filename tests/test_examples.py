@@ -176,6 +176,39 @@ def test_panda_study(tmp_path, env):
         assert math.isfinite(num(r["final_pos_error"])) and "runs on validated scenarios" in proc.stdout
 
 
+def test_perfect_controller_example(tmp_path, env, monkeypatch):
+    """Fig. 3.7 example (seconds): the point reaches the goal of the simple scene of seed 2 before the
+    6 s horizon, by a path no shorter than the straight line from start to goal, the estimator
+    placed virtual obstacles on the way, and the figure is written."""
+    import re
+
+    import numpy as np
+
+    out = tmp_path / "fig3_7.png"
+    proc = run("examples/perfect_controller.py", "--seed", "2", "--out", str(out), env=env)
+    assert is_png(out)
+    m = re.search(r"success (\w+), samples (\d+), path ([\d.]+) m, (\d+) valid estimates", proc.stdout)
+    assert m, proc.stdout
+    assert m.group(1) == "True" and 0 < int(m.group(2)) < 600 and int(m.group(4)) > 0
+    monkeypatch.syspath_prepend(str(ROOT / "examples"))
+    from perfect_controller import simple_scene
+
+    _, xs, xg, _ = simple_scene(2)
+    straight = float(np.linalg.norm(np.asarray(xg) - np.asarray(xs)))
+    assert straight - 0.1 <= float(m.group(3)) < 4 * straight  # within the 10 cm goal radius of a straight line at best
+
+
+def test_plot_cases_example(tmp_path, env):
+    """Fig. 3.2 / 3.4 example (seconds): one PNG per case and the warehouse field slice."""
+    from redman_jax._scenario import CASES
+
+    proc = run("examples/plot_cases.py", str(tmp_path), "--seed", "1", env=env)
+    for case in CASES:
+        assert is_png(tmp_path / f"case_{case}_seed1_9dof.png"), proc.stdout
+    assert is_png(tmp_path / "field_warehouse_seed1.png")
+    assert len(proc.stdout.strip().splitlines()) == len(CASES) + 1
+
+
 # ------------------------------------------------------------------------------------------------
 # command lines
 
@@ -183,7 +216,7 @@ def test_panda_study(tmp_path, env):
 @pytest.mark.parametrize("script", [
     "sweeps/thesis_study.py", "sweeps/ablation_obstacle_form.py", "sweeps/ablation_jac_scaling.py",
     "examples/single_scenario.py", "examples/own_jit.py", "examples/panda_study.py",
-    "examples/custom_controller.py",
+    "examples/custom_controller.py", "examples/perfect_controller.py",
 ])
 def test_help(script):
     proc = run(script, "--help")
