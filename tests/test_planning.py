@@ -16,6 +16,7 @@ from redman_jax._obstacles import make_obstacles, obstacle_distances, stack_obst
 from redman_jax._planning import (
     RRTParams,
     evaluate_trajectory,
+    plan_reference,
     plan_reference_batch,
     plan_rrt,
     plan_rrt_batch,
@@ -433,3 +434,26 @@ def test_safety_must_cover_the_edge_check_spacing():
     with pytest.raises(ValueError, match="RRTParams.safety"):
         RRTParams(safety=0.002)
     RRTParams(safety=0.006)  # just above edge_res / 2 = 0.005
+
+
+@pytest.mark.parametrize("star", [False, True])
+def test_start_at_the_goal_is_the_start_alone(star):
+    """A free start at the goal is a plan of the start alone (cost 0, no tree), and its reference
+    holds it at rest as a success; the planner used to make a 0.1 m out-and-back detour. A start
+    at a blocked goal still fails."""
+    obs, _, goal = _simple_scene(1)
+    params = RRTParams(rrt_star=star, max_nodes=PARAMS.max_nodes, path_capacity=PARAMS.path_capacity)
+    r = plan_rrt(jax.random.PRNGKey(0), obs, goal, goal, params)
+    assert bool(r.success) and int(r.n_path) == 1 and float(r.cost) == 0.0 and int(r.n_iter) == 0
+    np.testing.assert_array_equal(np.asarray(r.path), np.broadcast_to(np.asarray(goal), r.path.shape))
+    quat = jnp.array([1.0, 0.0, 0.0, 0.0])
+    out = plan_reference(jax.random.PRNGKey(0), obs, goal, goal, quat, 0.5, 0.01, 64, params)
+    ref = out.reference
+    assert bool(out.success) and int(ref.n_samples) == 1 and float(ref.rot[0]) == 1.0
+    np.testing.assert_array_equal(np.asarray(ref.p[0]), np.asarray(goal))
+    assert np.all(np.asarray(ref.v) == 0) and np.all(np.asarray(ref.a) == 0)
+    inside = jnp.asarray(obs.spheres.p[0])  # the centre of a sphere: blocked
+    r = plan_rrt(jax.random.PRNGKey(0), obs, inside, inside, params)
+    assert not bool(r.success)
+    out = plan_reference(jax.random.PRNGKey(0), obs, inside, inside, quat, 0.5, 0.01, 64, params)
+    assert not bool(out.success)

@@ -429,6 +429,8 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
     Returns:
         :class:`RRTResult`; ``success`` is False (and the path is the start alone) when no path was
         found within the node, iteration or path budgets, or when the start or goal is blocked.
+        A free start at the goal (within 1e-9 m) succeeds at once with the start alone
+        (``n_path = 1``, ``cost = 0``).
     """
     params = RRTParams() if params is None else params
     _check_point("start", start)
@@ -451,10 +453,12 @@ def plan_rrt(key: PRNGKeyArray, obs: ObstacleSet, start: Float[Array, "3"], goal
     start_clear = min_distance(obs, start) >= safety
 
     nodes0 = jnp.broadcast_to(start[:, None], (3, M)).astype(dtype)  # (3, M): coordinates first
+    # a start at the goal is a path of the start alone (the root is the goal node), not a detour
+    at_goal = goal_clear & start_clear & (safe_norm(start - goal) <= _TINY)
     init = _TreeState(
         it=jnp.asarray(0), n=jnp.asarray(1), nodes=nodes0, parent=jnp.zeros(M, int),
-        cost=jnp.zeros(M, dtype), found=jnp.asarray(False), found_it=jnp.asarray(0),
-        goal_idx=jnp.asarray(0), stop=~(goal_clear & start_clear),
+        cost=jnp.zeros(M, dtype), found=at_goal, found_it=jnp.asarray(0),
+        goal_idx=jnp.asarray(0), stop=~(goal_clear & start_clear) | at_goal,
     )
 
     def cond(st):
@@ -802,10 +806,12 @@ def reference_from_path(res: RRTResult, start_p, goal_p, goal_quat, rot_radius, 
     traj, c = time_scale(traj, params.v_max.astype(dtype), params.a_max.astype(dtype), params.dense)
     ref, fits = sample_reference(traj, goal_p, goal_quat, rot_radius, ts, capacity)
     ok = res.success & fits & (n_w >= 2) & jnp.isfinite(c)
-    failed = _hold_reference(start_p, goal_p, goal_quat, rot_radius, ts, capacity, dtype)
-    ref = jax.tree.map(lambda good, bad: jnp.where(ok, good, bad), ref, failed)
+    # the start alone (failed plan, or a start at the goal): hold it at rest
+    held = _hold_reference(start_p, goal_p, goal_quat, rot_radius, ts, capacity, dtype)
+    ref = jax.tree.map(lambda good, bad: jnp.where(ok, good, bad), ref, held)
+    at_goal = res.success & (res.n_path == 1)
     return PlanResult(rrt=res, smoothed=sm, waypoints=wp, n_waypoints=n_w, trajectory=traj,
-                      scale=c, reference=ref, success=ok)
+                      scale=c, reference=ref, success=ok | at_goal)
 
 
 def plan_reference(key: PRNGKeyArray, obs: ObstacleSet, start_p, goal_p, goal_quat, rot_radius, ts,
@@ -832,7 +838,8 @@ def rrt_reference(key: PRNGKeyArray, obs: ObstacleSet, start_p: Float[Array, "3"
     Returns:
         ``(reference, success)``. On failure (no path, or more than ``capacity`` samples needed)
         the reference holds the start at rest (``n_samples = 1``) and ``success`` is False; no
-        exception is raised under ``jit``.
+        exception is raised under ``jit``. A free start at the goal gives the same held reference
+        with ``success`` True.
 
     Raises:
         ValueError: bad shapes, a non-positive ``ts`` or ``capacity``, or bad parameters (host side).
