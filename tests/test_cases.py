@@ -184,7 +184,7 @@ def test_inspection_rules(geometric):
             assert np.all(on_plane[k0:])
             np.testing.assert_allclose(rot_from_quat(q[k0:])[:, :, 2], np.broadcast_to(u, (n - k0, 3)), atol=1e-12)
             s_lat = p[k0:] @ w
-            assert np.all(np.sign(s_lat) == -np.sign(lat)) or np.all(np.abs(s_lat + np.sign(lat) * 0) >= 0)
+            assert np.all(np.sign(s_lat) == -np.sign(lat))
             assert np.all(-np.sign(lat) * s_lat >= -(abs(lat) - r) + P.band_cyl_margin - TOL)
             assert np.all(np.abs(s_lat) <= P.room_width / 2 - P.band_wall_margin + TOL)
             zs = np.unique(np.round(p[k0:, 2], 9))

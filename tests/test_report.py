@@ -238,10 +238,13 @@ def test_gradient_success_against_thesis(tmp_path):
 
 def test_wilson_interval_matches_scipy():
     stats = pytest.importorskip("scipy.stats")
+    z = float(stats.norm.ppf(0.975))  # SciPy's z for 95 %; ours defaults to the rounded 1.96
     for k, n in ((0, 12), (9, 12), (12, 12), (49, 60), (2, 60)):
         ref = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
-        lo, hi = wilson_interval(k, n)
-        assert lo == pytest.approx(ref.low, abs=1e-3) and hi == pytest.approx(ref.high, abs=1e-3)
+        lo, hi = wilson_interval(k, n, z=z)
+        assert lo == pytest.approx(ref.low, abs=1e-12) and hi == pytest.approx(ref.high, abs=1e-12)
+        lo, hi = wilson_interval(k, n)  # z = 1.96 moves the ends by less than 1e-5
+        assert lo == pytest.approx(ref.low, abs=1e-5) and hi == pytest.approx(ref.high, abs=1e-5)
 
 
 def test_wilson_interval_ends_are_exact():
