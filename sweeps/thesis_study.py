@@ -2,8 +2,9 @@
 joint-space, velocity-based and acceleration-based controllers on every case and the
 gradient-guided one on the three point-to-point cases (thesis 3.4, 4; SPEC sections 10-11).
 
-The same as ``redman-jax study`` (``python -m redman_jax study``), with the headline table printed
-at the end. Resumable: rerun the same command after an interruption and only the missing units are
+The same as ``redman-jax study`` (``python -m redman_jax study``, the same ``--jobs`` default:
+two worker processes on a CPU machine with 2 or more cores), with the headline table printed at
+the end. Resumable: rerun the same command after an interruption and only the missing units are
 computed (``DIR/units/``); ``DIR/runs.csv`` / ``runs.parquet`` hold one row per run,
 ``DIR/traces/`` the per-sample traces, ``DIR/report.md`` and ``DIR/figures/`` the comparison with
 the thesis.
@@ -25,6 +26,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seeds", default="1-20", help="seeds, e.g. 1-20 or 1,3 (default 1-20)")
     ap.add_argument("--max-retries", type=int, default=20,
                     help="IK-validation retries per seed (seed + 1000 k; default 20)")
+    ap.add_argument("--jobs", default="auto",
+                    help="worker processes (default auto: 2 on a CPU machine with 2 or more cores, 1 with "
+                         "an accelerator), as `redman-jax study --jobs`")
     ap.add_argument("--no-figures", action="store_true", help="skip the figures and report.md")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap.parse_args(argv)
@@ -34,10 +38,10 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     from redman_jax._cli import parse_int_list
     from redman_jax._report import headline_table
-    from redman_jax._study import SweepConfig, load_runs, run_sweep
+    from redman_jax._study import SweepConfig, _jobs, load_runs, run_sweep
 
     cfg = SweepConfig(out=args.out, seeds=parse_int_list(args.seeds, "seeds"), max_retries=args.max_retries,
-                      figures=not args.no_figures, progress=not args.quiet)
+                      figures=not args.no_figures, progress=not args.quiet, jobs=_jobs(args.jobs))
     out = run_sweep(cfg)
     rows = load_runs(out)
     print(headline_table(rows))

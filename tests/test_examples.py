@@ -248,6 +248,29 @@ def test_ablation_tables_from_a_finished_sweep(script, monkeypatch, tmp_path, ca
     assert sum(line.startswith("| simple |") and cell in line for line in out.splitlines()) == len(mod.VARIANTS)
 
 
+def test_thesis_study_script_is_the_study_command(monkeypatch, tmp_path, capsys):
+    """sweeps/thesis_study.py builds the configuration `redman-jax study` builds, worker processes
+    included (it used to run in one process while documented as the same command); the sweep itself
+    is stubbed out."""
+    import importlib
+
+    import redman_jax._study as study
+    from redman_jax._cli import build_parser
+
+    monkeypatch.syspath_prepend(str(ROOT / "sweeps"))
+    mod = importlib.import_module("thesis_study")
+    seen = []
+    monkeypatch.setattr(study, "run_sweep", lambda cfg: seen.append(cfg) or tmp_path)
+    monkeypatch.setattr(study, "load_runs", lambda out: [])
+    for extra in ([], ["--jobs", "1"]):
+        argv = ["--out", str(tmp_path), "--seeds", "1-2", "--quiet", *extra]
+        assert mod.main(argv) == 0
+        want = study.SweepConfig.from_args(build_parser().parse_args(["study", *argv]), study=True)
+        assert seen[-1] == want
+    assert seen[0].jobs == study._jobs("auto") and seen[1].jobs == 1
+    capsys.readouterr()
+
+
 @pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "benchmarks").glob("bench_*.py")))
 def test_benchmark_help(script):
     """Every benchmark imports (its names still exist in the package) and parses its options."""

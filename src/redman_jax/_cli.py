@@ -70,7 +70,8 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
     p.add_argument("--max-retries", type=int, default=20,
                    help="IK-validation retries per seed (seed + 1000 k; default 20)")
     p.add_argument("--jobs", default="auto",
-                   help="worker processes for the (arm, case) groups (default auto: 2 on a CPU machine "
+                   help="worker processes for the groups of units: scenario builds per (arm, case), "
+                        "simulations per (arm, controller) (default auto: 2 on a CPU machine "
                         "with 2 or more cores, 1 with an accelerator)")
     p.add_argument("--no-figures", action="store_true", help="skip figures and report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -902,7 +902,9 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     * ``params``: :class:`SimParams`; ``q0``, ``qd0``: initial state (default ``arm.q0``, rest).
 
     **Returns** a :class:`SimResult`. Differentiable w.r.t. ``gains``, ``q0``, ``qd0`` and the
-    scenario's numbers (``RecursiveCheckpointAdjoint``).
+    scenario's numbers (``RecursiveCheckpointAdjoint``), except a gradient-guided controller in the
+    default ``mode="horizon"``, whose stepping loop is forward only: differentiate those with
+    ``SimParams(mode="per_sample")``.
 
     **Raises** ``ValueError`` for a wrong argument type or a missing joint reference.
     """

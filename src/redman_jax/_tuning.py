@@ -566,7 +566,9 @@ class TuneResult(NamedTuple):
     * ``max_torque_ratio``: smooth max of ``|tau| / tau_max`` (nan without a bound);
     * ``history``: dict of per-iteration arrays ``loss``, ``settling_time``, ``log_gains``
       ``(steps, k)``, ``accepted``;
-    * ``iterations``: optimiser steps taken; ``wall_time`` [s] and ``compile_time`` [s].
+    * ``iterations``: evaluations of the loss (simulation and reverse pass) made, at most
+      ``steps + 1``: each optimiser step and a last one that scores the final gains;
+      ``wall_time`` [s] and ``compile_time`` [s].
     """
 
     gains: object
@@ -827,8 +829,9 @@ def tune_gains(arm: Arm, controller, target=None, steps: int = 30, learning_rate
     **Arguments**
     * ``target``: settling time [s] to reach (default: the joint-space controller's with K_p 1000,
       K_d 100 on the same experiment, :func:`target_settling_time`);
-    * ``steps``: at most this many iterations (each one simulation and its reverse pass; stops
-      earlier once settled within ``stop_rtol`` of the target); ``learning_rate``: multiplier of
+    * ``steps``: at most this many optimiser steps (each one simulation and its reverse pass, plus
+      one last evaluation of the final gains; stops earlier once settled within ``stop_rtol`` of
+      the target); ``learning_rate``: multiplier of
       the step (default 1 for ``method="lm"``, 0.1 for ``"adam"``); ``method``: ``"lm"``
       (Levenberg-Marquardt, default) or ``"adam"``;
     * ``torque_bound``: ``tau_max`` (scalar or per joint) for the smooth-max torque penalty;
