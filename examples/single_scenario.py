@@ -15,7 +15,7 @@ Steps:
 4. The metrics are printed as a table, written to ``DIR/metrics.json``, and ``DIR/single_scenario.png``
    shows the scene with both end-effector paths and the position / orientation error per sample.
 
-Run (full size: 9-DOF arm, welding, ~1149 samples; a few minutes on 2 cores)::
+Run (full size: 9-DOF arm, welding, about 1200 samples; a few minutes on 2 cores)::
 
     .venv/bin/python examples/single_scenario.py --out single_scenario
 
