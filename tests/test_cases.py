@@ -454,21 +454,12 @@ def test_retry_rounds_fill_the_batch_speculatively(arms):
 def test_rrt_cases_plan_in_one_batch(arms):
     """Two simple-obstacle scenes planned by one jit(vmap(rrt_reference)); the order of seeds in
     the batch does not change a scene, and the second batch (same size) compiles nothing."""
-    from jax import monitoring
+    from conftest import backend_compiles
 
     arm = arms[9]
     a = make_scenarios("simple", [1, 2], arm)
-    compiles = []
-
-    def count(event, seconds, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(seconds)
-
-    monitoring.register_event_duration_secs_listener(count)
-    try:
+    with backend_compiles() as compiles:
         b = make_scenarios("simple", [2, 1], arm)
-    finally:
-        monitoring.unregister_event_duration_listener(count)
     assert compiles == []
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y)[::-1])
