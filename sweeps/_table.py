@@ -8,14 +8,23 @@ import math
 
 def ablation_config(args, controllers, allowed_cases):
     """The ``SweepConfig`` of an ablation script from its ``--out --arms --cases --seeds
-    --max-retries --quiet`` arguments (figures off: the script prints its own table)."""
+    --max-retries --jobs --quiet`` arguments (figures off: the script prints its own table)."""
     from redman_jax._cli import parse_int_list, parse_name_list
-    from redman_jax._study import SweepConfig
+    from redman_jax._study import SweepConfig, _jobs
 
     arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
     return SweepConfig(out=args.out, arms=arms, cases=parse_name_list(args.cases, "cases", allowed_cases),
                        seeds=parse_int_list(args.seeds, "seeds"), controllers=tuple(controllers),
-                       max_retries=args.max_retries, figures=False, progress=not args.quiet)
+                       max_retries=args.max_retries, figures=False, progress=not args.quiet,
+                       jobs=_jobs(args.jobs))
+
+
+def add_jobs_option(ap) -> None:
+    """``--jobs`` as in ``redman-jax sweep``; the script passes its ``register`` to the workers
+    (``run_sweep(cfg, _worker_init=register)``), so they know its controller variants."""
+    ap.add_argument("--jobs", default="auto",
+                    help="worker processes (default auto: 2 on a CPU machine with 2 or more cores, 1 with "
+                         "an accelerator), as `redman-jax sweep --jobs`")
 
 
 def _num(v) -> float:

@@ -40,6 +40,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seeds", default="1-20", help="seeds (default 1-20)")
     ap.add_argument("--max-retries", type=int, default=20, help="IK-validation retries per seed (default 20)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from _table import add_jobs_option
+
+    add_jobs_option(ap)
     return ap.parse_args(argv)
 
 
@@ -72,7 +75,7 @@ def main(argv=None) -> int:
     register()
     cfg = ablation_config(args, VARIANTS, CASES)
     cases = cfg.cases
-    out = run_sweep(cfg)
+    out = run_sweep(cfg, _worker_init=register)
     rows = load_runs(out)
 
     header = ["case", "controller", "jac_scaling", "failed", "collided", "pos error [mm]", "ori error"]

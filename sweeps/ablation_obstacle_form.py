@@ -38,6 +38,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seeds", default="1-20", help="seeds (default 1-20)")
     ap.add_argument("--max-retries", type=int, default=20, help="IK-validation retries per seed (default 20)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from _table import add_jobs_option
+
+    add_jobs_option(ap)
     return ap.parse_args(argv)
 
 
@@ -64,7 +67,7 @@ def main(argv=None) -> int:
     register()
     cfg = ablation_config(args, VARIANTS, GRADIENT_CASES)
     cases = cfg.cases
-    out = run_sweep(cfg)
+    out = run_sweep(cfg, _worker_init=register)
     rows = load_runs(out)
 
     stats = summarise(rows, lambda r: (r["case"], r["controller"]))

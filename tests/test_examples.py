@@ -228,7 +228,9 @@ def test_help(script):
 @pytest.mark.parametrize("script", ["ablation_obstacle_form", "ablation_jac_scaling"])
 def test_ablation_tables_from_a_finished_sweep(script, monkeypatch, tmp_path, capsys):
     """The ablations' tables after the sweep (the sweep itself stubbed out: its units are what the
-    study's tests cover): the obstacle-form table read an undefined name after the whole sweep."""
+    study's tests cover): the obstacle-form table read an undefined name after the whole sweep.
+    The sweep gets worker processes (``--jobs auto``) and the script's ``register``, which puts
+    its controller variants in each worker's registry."""
     import importlib
 
     import redman_jax._study as study
@@ -239,10 +241,13 @@ def test_ablation_tables_from_a_finished_sweep(script, monkeypatch, tmp_path, ca
                  mean_pos_error=0.01, mean_ori_error=0.0, final_pos_error=0.05, time_to_goal=2.0,
                  scenario_valid=True)
             for arm in ("7dof", "8dof", "9dof") for ctrl in mod.VARIANTS]
-    monkeypatch.setattr(study, "run_sweep", lambda cfg: tmp_path)
+    calls = []
+    monkeypatch.setattr(study, "run_sweep", lambda cfg, **kw: calls.append((cfg, kw)) or tmp_path)
     monkeypatch.setattr(study, "load_runs", lambda out: rows)
     assert mod.main(["--cases", "simple", "--seeds", "1", "--quiet", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
+    (cfg, kw), = calls
+    assert cfg.jobs == study._jobs("auto") and kw == {"_worker_init": mod.register}
     # one table row per variant: 3 successes of 3 runs (the jac table counts failures, 0/3)
     cell = "| 0/3 |" if script == "ablation_jac_scaling" else "| 3/3 |"
     assert sum(line.startswith("| simple |") and cell in line for line in out.splitlines()) == len(mod.VARIANTS)
