@@ -1,5 +1,5 @@
-"""Small helpers shared by the ablation scripts: their sweep configuration, grouping runs and a
-markdown table."""
+"""Small helpers shared by the sweep scripts: the ablations' sweep configuration, the ``--jobs``
+option, grouping runs and a markdown table."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def ablation_config(args, controllers, allowed_cases):
 
 
 def add_jobs_option(ap) -> None:
-    """``--jobs`` as in ``redman-jax sweep``; the script passes its ``register`` to the workers
+    """``--jobs`` as in ``redman-jax sweep``. An ablation passes its ``register`` to the workers
     (``run_sweep(cfg, _worker_init=register)``), so they know its controller variants."""
     ap.add_argument("--jobs", default="auto",
                     help="worker processes (default auto: 2 on a CPU machine with 2 or more cores, 1 with "

@@ -26,22 +26,20 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seeds", default="1-20", help="seeds, e.g. 1-20 or 1,3 (default 1-20)")
     ap.add_argument("--max-retries", type=int, default=20,
                     help="IK-validation retries per seed (seed + 1000 k; default 20)")
-    ap.add_argument("--jobs", default="auto",
-                    help="worker processes (default auto: 2 on a CPU machine with 2 or more cores, 1 with "
-                         "an accelerator), as `redman-jax study --jobs`")
     ap.add_argument("--no-figures", action="store_true", help="skip the figures and report.md")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    from _table import add_jobs_option
+
+    add_jobs_option(ap)
     return ap.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from redman_jax._cli import parse_int_list
     from redman_jax._report import headline_table
-    from redman_jax._study import SweepConfig, _jobs, load_runs, run_sweep
+    from redman_jax._study import SweepConfig, load_runs, run_sweep
 
-    cfg = SweepConfig(out=args.out, seeds=parse_int_list(args.seeds, "seeds"), max_retries=args.max_retries,
-                      figures=not args.no_figures, progress=not args.quiet, jobs=_jobs(args.jobs))
+    cfg = SweepConfig.from_args(args, study=True)  # what `redman-jax study` builds from the same options
     out = run_sweep(cfg)
     rows = load_runs(out)
     print(headline_table(rows))
