@@ -31,6 +31,19 @@ def install():
         lines = [",".join(str(c) for c in sorted(cores)) for cores in _thread_affinities()]
         with open(os.path.join(folder, f"{os.getpid()}.txt"), "w") as f:
             f.write("\n".join(lines))
+        # the width of XLA's CPU thread pool (threads named "tf_XLAEigen"), sized when jax started
+        import jax.numpy as jnp
+
+        jnp.ones(3).sum().block_until_ready()
+        names = []
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/comm") as f:
+                    names.append(f.read().strip())
+            except OSError:
+                continue
+        with open(os.path.join(folder, f"{os.getpid()}.pool"), "w") as f:
+            f.write(str(sum(n.endswith("XLAEigen") for n in names)))
 
     pipe.build_case = build_case
     pipe.run_controller = run_controller

@@ -329,11 +329,15 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     assert load_runs(tmp_path / "parallel") == load_runs(tmp_path / "serial")
     if hasattr(os, "sched_getaffinity"):
         seen = [[set(map(int, line.split(","))) for line in p.read_text().splitlines()]
-                for p in affinity.iterdir()]  # per worker, per thread
-        assert len(seen) >= 2  # a pool per phase, two workers each
+                for p in affinity.glob("*.txt")]  # per worker, per thread
+        pools = [int(p.read_text()) for p in affinity.glob("*.pool")]
+        assert len(seen) >= 2 and len(pools) == len(seen)  # a pool per phase, two workers each
         if pins:  # every thread of a worker on the worker's one core; both cores used
             assert all(len(w[0]) == 1 and w[0] <= set(pins) and all(t == w[0] for t in w) for w in seen)
             assert set().union(*(w[0] for w in seen)) == set(pins)
+            # and jax started on that one core: XLA's CPU thread pool is one thread wide (started
+            # with two cores, it is two threads wide, and both then share the one core)
+            assert pools == [1] * len(seen), pools
         else:  # fewer cores than workers: nothing pinned
             assert all(t == allowed for w in seen for t in w)
         assert _worker_cores(1) == [] and _worker_cores(len(os.sched_getaffinity(0)) + 1) == []

@@ -32,6 +32,7 @@ compare the numbers with the thesis.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -476,12 +477,15 @@ def _worker_start(cores, init) -> None:
     """Worker initializer: pin this process to a core of its own (taken from the queue ``cores``),
     then run ``init``.
 
-    Why: each process's XLA CPU runtime keeps a thread pool as wide as the machine (it runs
-    independent operations of a program at once), and two unpinned workers contend for both cores.
-    Measured (2-core CPU, two processes at once, each pinned with ``taskset``: the 8-DOF warehouse
-    velocity and acceleration simulations of 20 seeds, repeated in both orders): warm 37.7 and
-    35.3 s unpinned against 25.0 and 27.7 s pinned, cold (compilation included) 80-86 s against
-    46-50 s. Alone, unpinned is faster (19.7 against 25.0 s), so a single process is never pinned."""
+    Why: each process's XLA CPU runtime keeps a thread pool as wide as the cores it may run on
+    when jax is imported (it runs independent operations of a program at once), and two unpinned
+    workers contend for both cores. Measured (2-core CPU, two processes at once, each pinned with
+    ``taskset``: the 8-DOF warehouse velocity and acceleration simulations of 20 seeds, repeated in
+    both orders): warm 37.7 and 35.3 s unpinned against 25.0 and 27.7 s pinned, cold (compilation
+    included) 80-86 s against 46-50 s. Alone, unpinned is faster (19.7 against 25.0 s), so a single
+    process is never pinned. ``taskset`` pins before jax is imported, so the pool is one thread
+    wide; a worker imports jax before this initializer runs, so :func:`_run_parallel` spawns the
+    workers from a thread pinned to one core (:func:`_one_core_while_spawning`) to get that."""
     import queue as queue_mod
 
     if cores is not None:
@@ -491,6 +495,31 @@ def _worker_start(cores, init) -> None:
             pass
     if init is not None:
         init()
+
+
+@contextlib.contextmanager
+def _one_core_while_spawning(core):
+    """Run the body with the calling thread pinned to ``core`` (None: unchanged), then restore.
+
+    A spawned process starts with the affinity of the thread that spawns it, and jax sizes its XLA
+    CPU thread pool by the cores the process may use when jax is imported (an intra-op pool of
+    that width; later pinning does not shrink it). Spawned from a thread pinned to one core, each
+    worker gets a one-thread pool and runs a program's operations in sequence on its own core,
+    which is what ``taskset`` gave in the measurement of :func:`_worker_start`. With the pool two
+    threads wide but both threads pinned to one core, every hand-off between them is a context
+    switch (2-core CPU, 9-DOF simple case, joint space, 20 seeds, warm, one process: 4.3 s
+    ``taskset -c 0``, 6.1 s unpinned, 6.4 s two-wide pool pinned to one core after import)."""
+    import os
+
+    if core is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {core})
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
 
 
 def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -> None:
@@ -513,7 +542,8 @@ def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -
             for c in pins:
                 cores.put(c)
         start = functools.partial(_worker_start, cores, init)
-        with ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool:
+        with (_one_core_while_spawning(pins[0] if pins else None),
+              ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool):
             q = manager.Queue()
             pending = {pool.submit(_run_group, worker_cfg, todo[k], q.put) for k in order}
 
