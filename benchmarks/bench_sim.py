@@ -2,14 +2,16 @@
 *same* closed loop, for the study's controllers on the study's scenarios.
 
 Run: ``.venv/bin/python benchmarks/bench_sim.py [--cases welding simple] [--controllers velocity]
-[--seeds 20] [--scipy-seeds 1] [--scipy-samples 100] [--dof 9]``
+[--seeds 20] [--scipy-seeds 1] [--scipy-samples 100] [--dof 9] [--threads N]``
 
 What is compared, per case and controller (scenarios and IK joint references from
 ``redman_jax._pipeline.build_case``, the study's seeds ``1..seeds``):
 
-* **JAX**: ``simulate_batch`` over all seeds in one ``jit(vmap)`` call, default ``SimParams()``
-  (Dopri5, rtol 1e-5, atol 1e-7, one horizon solve with the sample boundaries as jump times).
-  *Cold* is the first call (tracing + compilation + run), *warm* the second call.
+* **JAX**: ``simulate_batch`` over all seeds in one call, default ``SimParams()`` (Dopri5, rtol
+  1e-5, atol 1e-7, one horizon solve with the sample boundaries as jump times) and default
+  ``threads`` (one ``jit(vmap)`` program on a chunk of the seeds per core, all at once: two chunks
+  of 10 on a 2-core machine; ``--threads 1``: one program over all seeds). *Cold* is the first
+  call (tracing + compilation + run), *warm* the second call.
 * **NumPy + SciPy**: the closed loop re-implemented below in plain NumPy (nothing jitted, no JAX
   call inside the vector field): forward kinematics, Jacobians, ``J_dot q_dot``, mass matrix and
   Newton-Euler bias forces, joint-limit contact (3.6), points of interest and their Jacobians,
@@ -502,16 +504,16 @@ def _block(x):
     return jax.block_until_ready(x)
 
 
-def time_jax(arm, scen, ik, name, params):
+def time_jax(arm, scen, ik, name, params, threads=None):
     """``(result, cold s, warm s)`` of ``simulate_batch`` over all seeds."""
     c = CONTROLLERS[name]()
     g = c.default_gains()
     ik_arg = ik if c.needs_joint_reference else None
     t0 = time.perf_counter()
-    _block(simulate_batch(arm, scen, c, g, ik=ik_arg, params=params))
+    _block(simulate_batch(arm, scen, c, g, ik=ik_arg, params=params, threads=threads))
     cold = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = _block(simulate_batch(arm, scen, c, g, ik=ik_arg, params=params))
+    res = _block(simulate_batch(arm, scen, c, g, ik=ik_arg, params=params, threads=threads))
     return res, cold, time.perf_counter() - t0
 
 
@@ -575,6 +577,8 @@ def main(argv=None):
     ap.add_argument("--scipy-samples", type=int, default=100,
                     help="time only the first K samples of each SciPy run (0: all)")
     ap.add_argument("--method", default="DOP853")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="simulate_batch's threads (default: its own choice, one chunk of the batch per core)")
     ap.add_argument("--exact-evals", action="store_true",
                     help="check the JAX evaluation count of seed 1 with a counting callback (recompiles)")
     args = ap.parse_args(argv)
@@ -586,7 +590,11 @@ def main(argv=None):
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()}), numpy {np.__version__}, "
           f"scipy {scipy.__version__}, x64={jax.config.jax_enable_x64}")
-    print(f"JAX: simulate_batch over {args.seeds} seeds, {params.solver} rtol {rtol:g} atol {atol:g}, one horizon solve "
+    from redman_jax._sim import _chunks
+
+    chunks = _chunks(args.threads, args.seeds, ())
+    print(f"JAX: simulate_batch over {args.seeds} seeds in {chunks} thread(s) of {-(-args.seeds // chunks)} seeds "
+          f"(threads={args.threads}; the process may use {len(os.sched_getaffinity(0))} core(s)), {params.solver} rtol {rtol:g} atol {atol:g}, one horizon solve "
           f"(gradient: one stepping loop over its {params.guidance_samples}-sample horizon); "
           f"cold = first call incl. compilation, warm = second call.")
     K = args.scipy_samples
@@ -619,7 +627,7 @@ def main(argv=None):
             gradient = name == "gradient"
             if gradient and case not in GRADIENT_CASES:
                 continue
-            res, cold, warm = time_jax(arm, scen, ik, name, params)
+            res, cold, warm = time_jax(arm, scen, ik, name, params, args.threads)
             # gradient runs: the samples up to each member's stop rule (it stops stepping there)
             n_run = np.asarray(res.n_samples) if gradient else n_samples
             T = float(n_run.sum() * ts)

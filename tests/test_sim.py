@@ -6,6 +6,8 @@ operational space), so every test has an analytic or brute-force reference. Prob
 small (7-DOF arm, <= 0.8 s horizons) to keep the file well under a minute.
 """
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -320,6 +322,55 @@ def test_batch_equals_single_runs_and_nan_is_isolated():
     for i in (0, 1, 3):
         for x, y in zip(jax.tree.leaves(batch), jax.tree.leaves(poisoned)):
             np.testing.assert_array_equal(np.asarray(x)[i], np.asarray(y)[i])
+
+
+def test_threads_split_the_batch_and_change_nothing_but_rounding():
+    """``simulate_batch(threads=2)`` on 5 members (chunks of 3, the second padded with a copy of
+    member 4): every member takes the same steps and gets the same flags as in one call, its
+    trajectory agrees to rounding (two compiled programs, batch 3 and 5), and a NaN injected into
+    one member is flagged there and leaves the others as they were in the threaded clean batch."""
+    rng = np.random.default_rng(5)
+    pairs = [joint_motion_scenario(ARM, np.asarray(DQ_FREE) * rng.uniform(0.5, 1.0, 7), 0.4, CAP, seed=i)
+             for i in range(5)]
+    scs = [p[0] for p in pairs]
+    jrefs = jax.tree.map(lambda *x: jnp.stack(x), *[p[1] for p in pairs])
+    g = toy_gains("osc")
+    one = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, threads=1)
+    two = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, threads=2)
+    assert jax.tree.structure(one) == jax.tree.structure(two)
+    for x, y in zip(jax.tree.leaves(one), jax.tree.leaves(two)):
+        assert np.shape(x) == np.shape(y)
+    np.testing.assert_array_equal(np.asarray(two.n_steps), np.asarray(one.n_steps))
+    np.testing.assert_array_equal(np.asarray(two.metrics.success), np.asarray(one.metrics.success))
+    np.testing.assert_allclose(np.asarray(two.q), np.asarray(one.q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(two.metrics.mean_pos_err), np.asarray(one.metrics.mean_pos_err),
+                               rtol=1e-9)
+    bad = list(scs)
+    bad[3] = eqx.tree_at(lambda s: s.reference.p, bad[3], bad[3].reference.p.at[10, 0].set(jnp.nan))
+    poisoned = simulate_batch(ARM, stack_scenarios(bad), CTRL, g, ik=jrefs, threads=2)
+    assert bool(poisoned.diverged[3]) and not np.any(np.asarray(poisoned.diverged)[[0, 1, 2, 4]])
+    for i in (0, 1, 2, 4):
+        for x, y in zip(jax.tree.leaves(two), jax.tree.leaves(poisoned)):
+            np.testing.assert_array_equal(np.asarray(x)[i], np.asarray(y)[i])
+
+
+def test_threads_is_checked_and_follows_the_cores():
+    from redman_jax._sim import _MIN_CHUNK, _chunks
+
+    sc, jref = joint_motion_scenario(ARM, DQ_FREE, 0.4, CAP)
+    scs = stack_scenarios([sc, sc])
+    jrefs = jax.tree.map(lambda *x: jnp.stack(x), jref, jref)
+    for bad in (0, -1, True, 1.5, "2"):
+        with pytest.raises(ValueError, match="threads"):
+            simulate_batch(ARM, scs, CTRL, toy_gains("osc"), ik=jrefs, threads=bad)
+    with pytest.raises(ValueError, match="threads=2 needs concrete inputs"):
+        jax.jit(lambda s: simulate_batch(ARM, s, CTRL, toy_gains("osc"), ik=jrefs, threads=2))(scs)
+    assert _chunks(2, 5, ()) == 2 and _chunks(8, 3, ()) == 3 and _chunks(1, 40, ()) == 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    expected = 1 if jax.default_backend() != "cpu" else max(1, min(cores, 40 // _MIN_CHUNK))
+    assert _chunks(None, 40, ()) == expected
+    assert _chunks(None, _MIN_CHUNK - 1, ()) == 1
+    assert _chunks(None, 40, (jnp.ones(2),)) == expected  # concrete arrays are no trace
 
 
 def test_a_solve_out_of_steps_is_flagged_diverged_and_nothing_else(free):

@@ -154,6 +154,11 @@ def test_guided_batch_equals_single_runs_and_nan_is_isolated(horizon, monkeypatc
     one = simulate_batch(ARM, stack_scenarios(scs[::2]), CTRL, GAINS,
                          params=dataclasses.replace(PARAMS, compact=False))
     np.testing.assert_allclose(np.asarray(one.q[1]), np.asarray(single2.q), rtol=1e-10, atol=1e-12)
+    # two members in two threads (simulate_batch's threads): each its single run's steps and path
+    threaded = simulate_batch(ARM, stack_scenarios(scs[::2]), CTRL, GAINS, params=PARAMS, threads=2)
+    assert [int(k) for k in threaded.n_steps] == [int(horizon.n_steps), int(single2.n_steps)]
+    for i, single in enumerate((horizon, single2)):
+        np.testing.assert_allclose(np.asarray(threaded.q[i]), np.asarray(single.q), rtol=0, atol=1e-12)
 
 
 def test_cases_padded_to_common_shapes_share_one_compilation(horizon):

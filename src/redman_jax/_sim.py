@@ -1044,8 +1044,8 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
 
 def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController, gains, ik=None,
                    params: SimParams | None = None, *, batch_gains: bool = False, q0=None,
-                   qd0=None) -> SimResult:
-    """Simulate a batch of runs in one ``jit(vmap(...))`` call.
+                   qd0=None, threads: int | None = None) -> SimResult:
+    """Simulate a batch of runs in one ``jit(vmap(...))`` call (per thread, see ``threads``).
 
     ``scenarios``: stacked scenarios (leading axis ``R``; :func:`~redman_jax.stack_scenarios`);
     ``ik``: joint references with a leading axis ``R`` (or None); ``batch_gains``: ``gains`` has a
@@ -1058,14 +1058,72 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     calls driven from the host, so that its last stragglers can move to a smaller batch
     (``params.compact``; see ``_simulate_guided_compacting``); called with tracers (inside the
     caller's ``jit``) it is one ``jit(vmap)`` program as for the other controllers.
+
+    ``threads``: on a CPU backend, called eagerly, the batch is split into ``threads`` equal
+    chunks (the last one padded with copies of its last member, dropped from the result), each
+    simulated by the same compiled program on a host thread of its own, at once. None (default):
+    one chunk per core this process may run on (``os.sched_getaffinity``), at most one per
+    ``_MIN_CHUNK`` members, and 1 on other backends or under a trace (where ``threads`` must be
+    None or 1). Why: at the study's batch of 20, a program's operations are small and XLA's CPU
+    runtime spends most of its time dispatching them, so one program cannot keep two cores busy;
+    two programs of half the batch can (2-core CPU, 9-DOF simple case, joint space, 20 seeds,
+    warm: 6.0 s in one call, 3.1 s in two threads; ``benchmarks/bench_sim.py --threads``). Each
+    member takes the same steps and flags as in one call and agrees with it to rounding
+    (the programs are compiled for another batch size).
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenarios, controller, ik, batched=True)
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     if q0 is not None and qd0 is None:
         qd0 = jnp.zeros_like(jnp.asarray(q0))
-    scenarios = _with_layout(arm, scenarios, params, scenarios.reference.p.shape[0])
     gains_axis, q0_axis = 0 if batch_gains else None, None if q0 is None else 0
+    R = int(scenarios.reference.p.shape[0])
+    k = _chunks(threads, R, (scenarios, gains, jref, q0, qd0, params))
+    if k == 1:
+        return _simulate_members(arm, scenarios, controller, gains, jref, q0, qd0, params,
+                                 gains_axis, q0_axis)
+    from concurrent.futures import ThreadPoolExecutor
+
+    size = -(-R // k)
+    rows = [np.minimum(np.arange(i * size, (i + 1) * size), R - 1) for i in range(k)]
+    take = lambda tree, idx, batched=True: (  # noqa: E731
+        jax.tree.map(lambda x: x[idx], tree) if batched and tree is not None else tree)
+    with ThreadPoolExecutor(max_workers=k, thread_name_prefix="redman-sim") as pool:
+        parts = [pool.submit(_simulate_members, arm, take(scenarios, idx), controller,
+                             take(gains, idx, batch_gains), take(jref, idx), take(q0, idx),
+                             take(qd0, idx), params, gains_axis, q0_axis) for idx in rows]
+        parts = [f.result() for f in parts]
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:R], *parts)
+
+
+_MIN_CHUNK = 8  # members per thread of simulate_batch, at least (below, dispatch costs dominate)
+
+
+def _chunks(threads, R: int, tree) -> int:
+    """How many chunks :func:`simulate_batch` splits a batch of ``R`` into (see its ``threads``)."""
+    import os
+
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
+                                or threads < 1):
+        raise ValueError(f"simulate_batch: threads must be a positive int or None, got {threads!r}")
+    if _has_tracer(tree):
+        if threads not in (None, 1):
+            raise ValueError(f"simulate_batch: threads={threads} needs concrete inputs (called under a "
+                             "trace, the batch is one program); pass threads=None or 1")
+        return 1
+    if threads is None:
+        if jax.default_backend() != "cpu":
+            return 1
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except (AttributeError, OSError):
+            cores = os.cpu_count() or 1
+        threads = min(cores, R // _MIN_CHUNK)
+    return int(max(1, min(threads, R)))
+
+
+def _simulate_members(arm, scenarios, controller, gains, jref, q0, qd0, params, gains_axis, q0_axis):
+    scenarios = _with_layout(arm, scenarios, params, scenarios.reference.p.shape[0])
     if (controller.uses_guidance and params.mode == "horizon" and params.compact
             and not _has_tracer((scenarios, gains, q0, qd0, params))):
         return _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, params,
