@@ -345,6 +345,12 @@ def test_threads_split_the_batch_and_change_nothing_but_rounding():
     np.testing.assert_allclose(np.asarray(two.q), np.asarray(one.q), rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(two.metrics.mean_pos_err), np.asarray(one.metrics.mean_pos_err),
                                rtol=1e-9)
+    # per-member initial states are split with their members
+    q0 = jnp.asarray(ARM.q0) + 0.01 * jnp.arange(5.0)[:, None]
+    one0 = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, q0=q0, threads=1)
+    two0 = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, q0=q0, threads=2)
+    np.testing.assert_allclose(np.asarray(two0.q), np.asarray(one0.q), rtol=0, atol=1e-12)
+    assert np.abs(np.asarray(two0.q[:, 0] - two.q[:, 0])).max() > 1e-3  # q0 did change the runs
     bad = list(scs)
     bad[3] = eqx.tree_at(lambda s: s.reference.p, bad[3], bad[3].reference.p.at[10, 0].set(jnp.nan))
     poisoned = simulate_batch(ARM, stack_scenarios(bad), CTRL, g, ik=jrefs, threads=2)

@@ -1091,7 +1091,8 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     with ThreadPoolExecutor(max_workers=k, thread_name_prefix="redman-sim") as pool:
         parts = [pool.submit(_simulate_members, arm, take(scenarios, idx), controller,
                              take(gains, idx, batch_gains), take(jref, idx), take(q0, idx),
-                             take(qd0, idx), params, gains_axis, q0_axis) for idx in rows]
+                             take(qd0, idx, q0_axis == 0), params, gains_axis,
+                             q0_axis) for idx in rows]
         parts = [f.result() for f in parts]
     return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:R], *parts)
 
