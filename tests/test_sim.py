@@ -299,12 +299,24 @@ def test_determinism(free):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-def test_batch_equals_single_runs_and_nan_is_isolated():
-    rng = np.random.default_rng(3)
+def free_batch(seed, count):
+    """``count`` free joint motions (random fractions of ``DQ_FREE``): the (scenario, joint
+    reference) pairs, the scenarios and the stacked joint references."""
+    rng = np.random.default_rng(seed)
     pairs = [joint_motion_scenario(ARM, np.asarray(DQ_FREE) * rng.uniform(0.5, 1.0, 7), 0.4, CAP, seed=i)
-             for i in range(4)]
-    scs = [p[0] for p in pairs]
-    jrefs = jax.tree.map(lambda *x: jnp.stack(x), *[p[1] for p in pairs])
+             for i in range(count)]
+    return pairs, [p[0] for p in pairs], jax.tree.map(lambda *x: jnp.stack(x), *[p[1] for p in pairs])
+
+
+def with_nan_reference(scs, i):
+    """The scenarios with a NaN in member ``i``'s reference (sample 10)."""
+    bad = list(scs)
+    bad[i] = eqx.tree_at(lambda s: s.reference.p, bad[i], bad[i].reference.p.at[10, 0].set(jnp.nan))
+    return stack_scenarios(bad)
+
+
+def test_batch_equals_single_runs_and_nan_is_isolated():
+    pairs, scs, jrefs = free_batch(3, 4)
     g = toy_gains("osc")
     batch = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs)
     for i, (sc, jref) in enumerate(pairs):
@@ -313,9 +325,7 @@ def test_batch_equals_single_runs_and_nan_is_isolated():
         assert int(batch.n_steps[i]) == int(single.n_steps)
     assert not np.any(np.asarray(batch.diverged))
     # inject a NaN into member 2's reference: it is flagged, the others are bit-identical
-    bad = list(scs)
-    bad[2] = eqx.tree_at(lambda s: s.reference.p, bad[2], bad[2].reference.p.at[10, 0].set(jnp.nan))
-    poisoned = simulate_batch(ARM, stack_scenarios(bad), CTRL, g, ik=jrefs)
+    poisoned = simulate_batch(ARM, with_nan_reference(scs, 2), CTRL, g, ik=jrefs)
     assert bool(poisoned.diverged[2]) and not bool(poisoned.metrics.success[2])
     assert int(poisoned.metrics.cause[2]) == 3
     assert np.all(np.isfinite(np.asarray(poisoned.q[2])))  # frozen, not NaN
@@ -329,11 +339,7 @@ def test_threads_split_the_batch_and_change_nothing_but_rounding():
     member 4): every member takes the same steps and gets the same flags as in one call, its
     trajectory agrees to rounding (two compiled programs, batch 3 and 5), and a NaN injected into
     one member is flagged there and leaves the others as they were in the threaded clean batch."""
-    rng = np.random.default_rng(5)
-    pairs = [joint_motion_scenario(ARM, np.asarray(DQ_FREE) * rng.uniform(0.5, 1.0, 7), 0.4, CAP, seed=i)
-             for i in range(5)]
-    scs = [p[0] for p in pairs]
-    jrefs = jax.tree.map(lambda *x: jnp.stack(x), *[p[1] for p in pairs])
+    _, scs, jrefs = free_batch(5, 5)
     g = toy_gains("osc")
     one = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, threads=1)
     two = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, threads=2)
@@ -351,9 +357,7 @@ def test_threads_split_the_batch_and_change_nothing_but_rounding():
     two0 = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, q0=q0, threads=2)
     np.testing.assert_allclose(np.asarray(two0.q), np.asarray(one0.q), rtol=0, atol=1e-12)
     assert np.abs(np.asarray(two0.q[:, 0] - two.q[:, 0])).max() > 1e-3  # q0 did change the runs
-    bad = list(scs)
-    bad[3] = eqx.tree_at(lambda s: s.reference.p, bad[3], bad[3].reference.p.at[10, 0].set(jnp.nan))
-    poisoned = simulate_batch(ARM, stack_scenarios(bad), CTRL, g, ik=jrefs, threads=2)
+    poisoned = simulate_batch(ARM, with_nan_reference(scs, 3), CTRL, g, ik=jrefs, threads=2)
     assert bool(poisoned.diverged[3]) and not np.any(np.asarray(poisoned.diverged)[[0, 1, 2, 4]])
     for i in (0, 1, 2, 4):
         for x, y in zip(jax.tree.leaves(two), jax.tree.leaves(poisoned)):
