@@ -44,6 +44,8 @@ def install():
                 continue
         with open(os.path.join(folder, f"{os.getpid()}.pool"), "w") as f:
             f.write(str(sum(n.endswith("XLAEigen") for n in names)))
+        with open(os.path.join(folder, f"{os.getpid()}.flags"), "w") as f:
+            f.write(os.environ.get("XLA_FLAGS", ""))
 
     pipe.build_case = build_case
     pipe.run_controller = run_controller

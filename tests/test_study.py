@@ -301,7 +301,7 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     one-process sweep, and a rerun computes nothing."""
     import _fake_units
 
-    from redman_jax._study import _worker_cores
+    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _worker_cores, _xla_accepts
 
     calls = []
     _fake_pipeline(monkeypatch, calls)
@@ -312,6 +312,7 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     affinity.mkdir()
     monkeypatch.setenv("REDMAN_TEST_AFFINITY_DIR", str(affinity))
     cfg = dataclasses.replace(_config(tmp_path / "parallel"), jobs=2)
+    flags_before = os.environ.get("XLA_FLAGS", "")
     # under `make test` this process is an xdist worker pinned to one core (conftest); the sweep's
     # workers inherit the affinity of this thread, so let it have every core while they start
     own = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
@@ -331,6 +332,12 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
         seen = [[set(map(int, line.split(","))) for line in p.read_text().splitlines()]
                 for p in affinity.glob("*.txt")]  # per worker, per thread
         pools = [int(p.read_text()) for p in affinity.glob("*.pool")]
+        flags = [p.read_text().split() for p in affinity.glob("*.flags")]
+        assert len(flags) == len(seen) and os.environ.get("XLA_FLAGS", "") == flags_before
+        if _xla_accepts(_with_flags(flags_before, WORKER_XLA_FLAGS)):  # the workers' XLA flags
+            assert all(set(WORKER_XLA_FLAGS) <= set(f) for f in flags), flags
+        else:
+            assert all(f == flags_before.split() for f in flags), flags
         assert len(seen) >= 2 and len(pools) == len(seen)  # a pool per phase, two workers each
         if pins:  # every thread of a worker on the worker's one core; both cores used
             assert all(len(w[0]) == 1 and w[0] <= set(pins) and all(t == w[0] for t in w) for w in seen)
@@ -462,3 +469,21 @@ def test_clear_caches_returns_memory_mappings():
     gc.collect()
     assert grown - base >= 20  # each executable holds mappings of its own
     assert maps() - base < (grown - base) / 4
+
+
+def test_worker_xla_flags_keep_what_the_user_set(monkeypatch):
+    from redman_jax import _study
+
+    extra = ("--xla_a=1", "--xla_b=")
+    assert _study._with_flags("", extra) == "--xla_a=1 --xla_b="
+    assert _study._with_flags("--xla_a=0 --other", extra) == "--xla_a=0 --other --xla_b="
+    monkeypatch.setattr(_study, "_xla_accepts", lambda flags: True)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_b=x")
+    with _study._worker_xla_flags(extra):
+        assert os.environ["XLA_FLAGS"] == "--xla_b=x --xla_a=1"
+    assert os.environ["XLA_FLAGS"] == "--xla_b=x"
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setattr(_study, "_xla_accepts", lambda flags: False)  # a jaxlib that lacks them
+    with _study._worker_xla_flags(extra):
+        assert "XLA_FLAGS" not in os.environ
+    assert "XLA_FLAGS" not in os.environ
