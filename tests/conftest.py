@@ -41,31 +41,43 @@ if os.environ.get("REDMAN_TEST_DEFAULT_EMITTERS") != "1":
     _default_xla_flag(LEGACY_EMITTERS_FLAG)
 DEFAULT_EMITTERS = LEGACY_EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "").split()
 
+
+def _pin_xdist_worker():
+    """Under pytest-xdist (``make test`` runs ``-n 2``) each worker process runs on a core of its
+    own, as the study's workers do: two unpinned XLA processes contend for both cores
+    (:func:`redman_jax._study._worker_start`). Called before jax's backend starts (``import
+    redman_jax`` starts it), so that XLA's CPU thread pool, sized then by the cores the process may
+    run on, is one thread wide; pinned later, its two threads would share the one core. The logic of
+    :func:`redman_jax._study._worker_cores` and ``_pin_threads``, inline: importing them would start
+    the backend."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if not worker.startswith("gw") or count < 2:
+        return
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+        tids = os.listdir("/proc/self/task")
+    except (AttributeError, OSError):
+        return
+    if len(cores) < count:
+        return
+    core = cores[:count][int(worker[2:]) % count]
+    try:
+        for tid in tids:
+            with contextlib.suppress(ProcessLookupError):  # the thread ended meanwhile
+                os.sched_setaffinity(int(tid), {core})
+    except OSError:
+        return
+    os.environ["REDMAN_TEST_PINNED_CORE"] = str(core)  # for the test that checks it
+
+
+_pin_xdist_worker()
+
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import redman_jax  # noqa: E402,F401  (enables x64)
-
-
-def _pin_xdist_worker():
-    """Under pytest-xdist (``make test`` runs ``-n 2``) each worker process runs on a core of its
-    own, as the study's workers do: two unpinned XLA processes contend for both cores
-    (:func:`redman_jax._study._worker_start`)."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
-    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
-    if not worker.startswith("gw") or count < 2:
-        return
-    from redman_jax._study import _pin_threads, _worker_cores
-
-    cores = _worker_cores(count)
-    if cores:
-        core = cores[int(worker[2:]) % len(cores)]
-        if _pin_threads(core):
-            os.environ["REDMAN_TEST_PINNED_CORE"] = str(core)  # for the test that checks it
-
-
-_pin_xdist_worker()
 
 
 @pytest.fixture

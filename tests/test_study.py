@@ -4,6 +4,7 @@ The pipeline units (build a case, run a controller) are replaced by cheap determ
 so these tests check the driver's bookkeeping; the real units are exercised by the examples tests.
 """
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -358,13 +359,23 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
 
 
 def test_xdist_workers_run_on_a_core_of_their_own():
-    """Under ``pytest -n 2`` (``make test``) conftest pins each worker's threads to one core."""
+    """Under ``pytest -n 2`` (``make test``) conftest pins each worker's threads to one core, before
+    jax starts."""
     core = os.environ.get("REDMAN_TEST_PINNED_CORE")
     if core is None:
         pytest.skip("not an xdist worker on a machine with a core per worker")
+    import jax.numpy as jnp
+
     from redman_jax._study import _thread_affinities
 
+    jnp.ones(3).sum().block_until_ready()
     assert all(cores == {int(core)} for cores in _thread_affinities())
+    # pinned before jax's backend started: XLA's CPU thread pool is one thread wide
+    names = []
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(OSError):
+            names.append(Path(f"/proc/self/task/{tid}/comm").read_text().strip())
+    assert sum(n.endswith("XLAEigen") for n in names) == 1, names
 
 
 SHARD_SCRIPT = textwrap.dedent(
