@@ -45,11 +45,12 @@ DEFAULT_EMITTERS = LEGACY_EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "").s
 def _pin_xdist_worker():
     """Under pytest-xdist (``make test`` runs ``-n 2``) each worker process runs on a core of its
     own, as the study's workers do: two unpinned XLA processes contend for both cores
-    (:func:`redman_jax._study._worker_start`). Called before jax's backend starts (``import
-    redman_jax`` starts it), so that XLA's CPU thread pool, sized then by the cores the process may
-    run on, is one thread wide; pinned later, its two threads would share the one core. The logic of
-    :func:`redman_jax._study._worker_cores` and ``_pin_threads``, inline: importing them would start
-    the backend."""
+    (:func:`redman_jax._study._worker_start`). Called before jax's backend starts (at the first JAX
+    computation; ``import redman_jax`` starts none since it stopped building arrays at import), so
+    that XLA's CPU thread pool, sized then by the cores the process may run on, is one thread wide;
+    pinned later, its two threads would share the one core. The logic of
+    :func:`redman_jax._study._worker_cores` and ``_pin_threads``, inline, so that nothing runs before
+    it."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
     if not worker.startswith("gw") or count < 2:

@@ -303,3 +303,19 @@ def test_validated_scenarios_reseeds(monkeypatch):
     np.testing.assert_array_equal(np.asarray(scen.seed_used), [1001, 2])
     np.testing.assert_array_equal(np.asarray(scen.seed), [1, 2])
     assert np.all(np.asarray(res.valid)) and res.q.shape == (2, CAP, ARM.n_dof)
+
+
+def test_importing_redman_jax_starts_no_jax_backend():
+    """The IK's default parameters are built at the call, not at import (they were default
+    arguments holding arrays): ``import redman_jax`` starts no JAX backend, so that a user can still
+    call ``jax.distributed.initialize()``, set XLA options or pin the process after it, as JAX
+    requires before its backend starts."""
+    import os
+    import subprocess
+    import sys
+
+    script = "import redman_jax\nfrom jax._src import xla_bridge\nprint(xla_bridge.backends_are_initialized())"
+    proc = subprocess.run([sys.executable, "-c", script], env=dict(os.environ, JAX_PLATFORMS="cpu"),
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["False"]

@@ -514,7 +514,7 @@ def _validate_one(arm: Arm, obs: ObstacleSet, ref: Reference, res: IKResult, par
     return clear & finite, within & finite, reached & finite, finite, ok
 
 
-def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params: IKParams = IKParams(),
+def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params: IKParams | None = None,
                  q0=None) -> IKResult:
     """IK of one reference (or a batch: a leading axis on ``reference`` and ``obstacles``).
 
@@ -526,6 +526,7 @@ def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params:
 
     **Raises:** ``ValueError`` naming the field for inconsistent shapes.
     """
+    params = IKParams() if params is None else params
     batched = reference.p.ndim == 3
     # shapes only (an eager x[0] would compile a slice per leaf shape)
     ref0 = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), reference) if batched else reference
@@ -541,19 +542,20 @@ def _ik_jit(arm, reference, obstacles, params, q0, batched):
     return fn(reference, obstacles)
 
 
-def ik_trajectory(arm: Arm, scenario: Scenario, params: IKParams = IKParams(), q0=None) -> IKResult:
+def ik_trajectory(arm: Arm, scenario: Scenario, params: IKParams | None = None, q0=None) -> IKResult:
     """IK of a :class:`~redman_jax.Scenario` (its reference among its obstacles); a stacked batch of
     scenarios is solved as one ``vmap`` (one compiled scan for all seeds). See :func:`ik_reference`."""
     return ik_reference(arm, scenario.reference, scenario.obstacles, params, q0)
 
 
-def validate_ik(arm: Arm, scenario: Scenario, ik_result: IKResult, params: IKParams = IKParams()):
+def validate_ik(arm: Arm, scenario: Scenario, ik_result: IKResult, params: IKParams | None = None):
     """Validation of an IK trajectory (SPEC section 8): ``True`` where no point of interest comes
     within its link width (0.10 m) of an obstacle at any valid sample, every limited joint stays
     within its limits (up to ``params.limit_tolerance``), the final end-effector position is within
     ``params.goal_tolerance`` of the last reference sample and nothing is NaN. Recomputed from
     ``ik_result.q`` (independent of the IK's own diagnostics). Returns a bool array: shape ``()`` for
     one scenario, ``(B,)`` for a batch."""
+    params = IKParams() if params is None else params
     batched = ik_result.q.ndim == 3
     fn = lambda s, r: _validate_one(arm, s.obstacles, s.reference, r, params)[-1]
     return _validate_jit(fn, scenario, ik_result, batched)
@@ -578,7 +580,7 @@ def _pad_batch(tree, size: int):
     return jax.tree.map(pad, tree)
 
 
-def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, params: IKParams = IKParams(),
+def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, params: IKParams | None = None,
                         case_params=None, stats: dict | None = None):
     """For each requested seed, the first valid scenario among ``seed, seed + 1000, ...`` (thesis 3.4).
 
@@ -597,6 +599,7 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     """
     from ._cases import _stack, make_scenarios
 
+    params = IKParams() if params is None else params
     seeds = [int(s) for s in np.atleast_1d(np.asarray(seeds))]
     if not seeds:
         raise ValueError("validated_scenarios: seeds is empty")
