@@ -75,6 +75,20 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
                         "with 2 or more cores, 1 with an accelerator)")
     p.add_argument("--no-figures", action="store_true", help="skip figures and report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--distributed", action="store_true",
+                   help="join a multi-process run (jax.distributed): start this same command once per "
+                        "node (or per GPU); every simulation's batch is sharded over the devices of all "
+                        "processes and process 0 writes --out. The processes are found from the "
+                        "cluster's environment (SLURM, Open MPI, ...) unless --coordinator, "
+                        "--num-processes and --process-id say")
+    p.add_argument("--coordinator", default=None,
+                   help="with --distributed: HOST:PORT of process 0 (default $JAX_COORDINATOR_ADDRESS, "
+                        "or detected)")
+    p.add_argument("--num-processes", default=None,
+                   help="with --distributed: how many processes (default $JAX_NUM_PROCESSES, or detected)")
+    p.add_argument("--process-id", default=None,
+                   help="with --distributed: this process's index, 0 to N-1 (default $JAX_PROCESS_ID, "
+                        "or detected)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -107,6 +121,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _join_distributed(args) -> None:
+    """``--distributed``: join the multi-process run before any JAX work in this process."""
+    given = [f"--{n.replace('_', '-')}" for n in ("coordinator", "num_processes", "process_id")
+             if getattr(args, n) is not None]
+    if not args.distributed:
+        if given:
+            raise CLIError(f"{', '.join(given)}: only with --distributed")
+        return
+    if str(args.jobs) not in ("auto", "1"):
+        raise CLIError(f"--jobs: a --distributed sweep runs one process per node or device; got --jobs {args.jobs}")
+    from ._distributed import initialize
+
+    initialize(args.coordinator, args.num_processes, args.process_id)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -118,6 +147,7 @@ def main(argv=None) -> int:
         if command in ("study", "sweep"):
             from ._study import SweepConfig, run_sweep
 
+            _join_distributed(args)
             cfg = SweepConfig.from_args(args, study=(command == "study"))
             run_sweep(cfg)
         elif command == "plot":

@@ -39,7 +39,9 @@ def shard_batch(tree):
 
     The batch is split along its leading axis (``NamedSharding(mesh, P("batch"))``); with one device
     this is a no-op. Callers pad the batch to a multiple of the device count first
-    (:func:`_pad_batch`). Under ``jit`` the computation then runs data-parallel on all devices.
+    (:func:`_pad_batch`). Under ``jit`` the computation then runs data-parallel on all devices,
+    those of every process in a ``jax.distributed`` run (:mod:`redman_jax._distributed`), where
+    every process must pass the same batch.
     """
     devices = jax.devices()
     if len(devices) == 1:
@@ -48,11 +50,15 @@ def shard_batch(tree):
 
     mesh = Mesh(np.array(devices), ("batch",))
 
+    multi = jax.process_count() > 1
+
     def put(x):
         if not hasattr(x, "ndim") or x.ndim == 0:
             return x
         spec = P("batch", *([None] * (x.ndim - 1)))
-        return jax.device_put(x, NamedSharding(mesh, spec))
+        # several processes (jax.distributed): each passes the whole batch from the host and keeps
+        # its devices' rows
+        return jax.device_put(np.asarray(x) if multi else x, NamedSharding(mesh, spec))
 
     return jax.tree.map(put, tree)
 
@@ -218,6 +224,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     grouping of the sum over slots)."""
     from ._controllers import CONTROLLERS
     from ._metrics import controller_time_per_sample
+    from ._distributed import to_host
     from ._sim import SimParams, simulate_batch
 
     controller = CONTROLLERS[ctrl_name]()
@@ -249,7 +256,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     t0 = time.perf_counter()
     res = _block(simulate_batch(arm, scen_p, controller, gains, ik=ik_arg, params=params))
     t_sim = time.perf_counter() - t0
-    res = jax.tree.map(lambda x: np.asarray(x)[:R], res)
+    res = jax.tree.map(lambda x: x[:R], to_host(res))  # gathered from every process's devices
     if not controller.uses_guidance:  # the padded samples back off (invalid, never reported)
         N1 = scen_sim.reference.capacity
         res = jax.tree.map(lambda x: x[:, :N0] if x.ndim >= 2 and x.shape[1] == N1 else x, res)
@@ -312,7 +319,9 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
         traces["estimate_valid"] = res.estimate_valid
     else:
         traces["p_d"] = np.asarray(ref.p).astype(np.float32)
-    return {"rows": rows, "traces": traces, "timings": {"sim_s": t_sim, "t_controller_per_sample": t_ctrl}}
+    # where the batch ran: devices of how many processes (jax.distributed) it was sharded over
+    return {"rows": rows, "traces": traces, "timings": {"sim_s": t_sim, "t_controller_per_sample": t_ctrl,
+                                                        "devices": ndev, "processes": jax.process_count()}}
 
 
 def _goal_field_shift(scen, params, gains) -> np.ndarray:

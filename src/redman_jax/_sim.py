@@ -1057,14 +1057,15 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     A gradient-guided controller in ``mode="horizon"`` (forward only) is stepped by a few jitted
     calls driven from the host, so that its last stragglers can move to a smaller batch
     (``params.compact``; see ``_simulate_guided_compacting``); called with tracers (inside the
-    caller's ``jit``) it is one ``jit(vmap)`` program as for the other controllers.
+    caller's ``jit``) or with a batch sharded over several processes (``jax.distributed``) it is
+    one ``jit(vmap)`` program as for the other controllers.
 
     ``threads``: on a CPU backend, called eagerly, the batch is split into ``threads`` equal
     chunks (the last one padded with copies of its last member, dropped from the result), each
     simulated by the same compiled program on a host thread of its own, at once. None (default):
     one chunk per core this process may run on (``os.sched_getaffinity``), at most one per
-    ``_MIN_CHUNK`` members, and 1 on other backends or under a trace (where ``threads`` must be
-    None or 1). Why: at the study's batch of 20, a program's operations are small and XLA's CPU
+    ``_MIN_CHUNK`` members, and 1 on other backends, under a trace or for a batch sharded over
+    several processes (where ``threads`` must be None or 1). Why: at the study's batch of 20, a program's operations are small and XLA's CPU
     runtime spends most of its time dispatching them, so one program cannot keep two cores busy;
     two programs of half the batch can (2-core CPU, 9-DOF simple case, joint space, 20 seeds,
     warm: 6.0 s in one call, 3.1 s in two threads; ``benchmarks/bench_sim.py --threads``). Each
@@ -1112,6 +1113,11 @@ def _chunks(threads, R: int, tree) -> int:
             raise ValueError(f"simulate_batch: threads={threads} needs concrete inputs (called under a "
                              "trace, the batch is one program); pass threads=None or 1")
         return 1
+    if _spans_processes(tree):
+        if threads not in (None, 1):
+            raise ValueError(f"simulate_batch: threads={threads} needs a batch held by this process (it is "
+                             "sharded over several processes: one program); pass threads=None or 1")
+        return 1
     if threads is None:
         if jax.default_backend() != "cpu":
             return 1
@@ -1126,7 +1132,8 @@ def _chunks(threads, R: int, tree) -> int:
 def _simulate_members(arm, scenarios, controller, gains, jref, q0, qd0, params, gains_axis, q0_axis):
     scenarios = _with_layout(arm, scenarios, params, scenarios.reference.p.shape[0])
     if (controller.uses_guidance and params.mode == "horizon" and params.compact
-            and not _has_tracer((scenarios, gains, q0, qd0, params))):
+            and not _has_tracer((scenarios, gains, q0, qd0, params))
+            and not _spans_processes((scenarios, gains, q0, qd0))):
         return _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, params,
                                            gains_axis, q0_axis)
     return _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params,
@@ -1135,6 +1142,13 @@ def _simulate_members(arm, scenarios, controller, gains, jref, q0, qd0, params, 
 
 def _has_tracer(tree) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
+
+
+def _spans_processes(tree) -> bool:
+    """Whether an array of ``tree`` is sharded over devices of several processes (``jax.distributed``):
+    the host cannot read it, so the batch runs as one program (no threads, no straggler compaction)."""
+    return any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and not x.is_fully_addressable
+               for x in jax.tree.leaves(tree))
 
 
 @eqx.filter_jit

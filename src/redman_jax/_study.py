@@ -22,6 +22,11 @@ own (two unpinned XLA processes contend for both cores: 1.3-1.7x slower, see :fu
 The results are the same as with one process (each unit is a deterministic function of its
 configuration; tested).
 
+``distributed`` (``--distributed``): several processes, one per node or device, run the same sweep
+through ``jax.distributed`` (:mod:`redman_jax._distributed`). Each simulation's batch is sharded
+over the devices of all of them; process 0 decides which units are missing, hands every process
+the scenarios it stored, and alone writes ``DIR`` (the others may pass any ``--out``).
+
 At the end ``DIR/runs.csv`` and ``DIR/runs.parquet`` (without pandas and pyarrow: no parquet, and an
 older one is removed) hold one row per run, ``DIR/traces/`` the
 per-sample traces (compressed ``.npz``), ``DIR/config.json`` the configuration, ``DIR/timing.csv``
@@ -43,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._distributed import barrier, broadcast_object
 from ._progress import Progress
 from ._scenario import CASES
 from ._store import UnitStore, atomic_write_bytes, atomic_write_text, config_hash
@@ -132,6 +138,7 @@ class SweepConfig:
     figures: bool = True
     progress: bool = True
     jobs: int = 1
+    distributed: bool = False
 
     def __post_init__(self):
         from ._controllers import CONTROLLERS
@@ -154,6 +161,9 @@ class SweepConfig:
             raise ValueError(f"ts: sample time must be in (0, 0.1] s, got {self.ts}")
         if not isinstance(self.jobs, int) or self.jobs < 1:
             raise ValueError(f"jobs: need a positive number of worker processes, got {self.jobs!r}")
+        if self.distributed and self.jobs != 1:
+            raise ValueError(f"jobs: a distributed sweep runs one process per node or device (jobs=1), "
+                             f"got {self.jobs}")
         from ._sim import SOLVER_CHOICES
 
         if self.solver not in SOLVER_CHOICES:
@@ -183,8 +193,13 @@ class SweepConfig:
         from ._controllers import CONTROLLERS
 
         seeds = parse_int_list(args.seeds, "seeds")
+        distributed = bool(getattr(args, "distributed", False))
+        if distributed and str(args.jobs) not in ("auto", "1"):
+            raise ValueError(f"--jobs: a --distributed sweep runs one process per node or device; got "
+                             f"--jobs {args.jobs}")
         common = dict(out=args.out, seeds=seeds, max_retries=args.max_retries,
-                      figures=not args.no_figures, progress=not args.quiet, jobs=_jobs(args.jobs))
+                      figures=not args.no_figures, progress=not args.quiet,
+                      jobs=1 if distributed else _jobs(args.jobs), distributed=distributed)
         if study:
             return cls(**common)
         arms = tuple(dict.fromkeys(a.strip() for a in args.arms.split(",") if a.strip()))
@@ -207,6 +222,7 @@ class SweepConfig:
         d.pop("progress")
         d.pop("figures")
         d.pop("jobs")
+        d.pop("distributed")
         return d
 
 
@@ -341,7 +357,8 @@ def _run_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     wall = time.perf_counter() - t0
     kind, arm_spec, case, ctrl, name, key = unit
     record = {"key": key, "wall_s": wall, "compile_s": union_seconds(_compile_spans)}
-    atomic_write_text(_timing_path(store, name), json.dumps(record))
+    if _leader(cfg):
+        atomic_write_text(_timing_path(store, name), json.dumps(record))
 
 
 def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
@@ -354,11 +371,24 @@ def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
     if kind == "scen":
         payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
     else:
-        scen = store.load(f"scen_{_arm_label(arm_spec)}_{case}")
+        scen_name = f"scen_{_arm_label(arm_spec)}_{case}"
+        scen = broadcast_object(store.load(scen_name) if _leader(cfg) else None) if cfg.distributed \
+            else store.load(scen_name)
         payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl),
                                       sim_params=_sim_params(cfg), shapes=_sim_shapes(cfg, case, ctrl))
         payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
-    store.save(name, key, payload)
+    if _leader(cfg):
+        store.save(name, key, payload)
+
+
+def _leader(cfg: SweepConfig) -> bool:
+    """Whether this process writes the results folder: always, but in a distributed sweep
+    (:mod:`redman_jax._distributed`) only process 0."""
+    if not cfg.distributed:
+        return True
+    from ._distributed import is_leader
+
+    return is_leader()
 
 
 def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
@@ -400,22 +430,31 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     """
     out = Path(cfg.out)
     store = UnitStore(out)
-    atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
+    leader = _leader(cfg)
+    if leader:
+        atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
     phases = _units(cfg)
-    progress = Progress(sum(len(g) for ph in phases for g in ph.values()), "units", enabled=cfg.progress)
+    progress = Progress(sum(len(g) for ph in phases for g in ph.values()), "units",
+                        enabled=cfg.progress and leader)
     for groups in phases:
         todo = {}
-        for gk, group in groups.items():
+        for gk, group in groups.items() if leader else ():
             missing = [u for u in group if not store.has(u[4], u[5])]
             if len(missing) < len(group):
                 progress.skip(len(group) - len(missing))
             if missing:
                 todo[gk] = missing
+        if cfg.distributed:  # every process runs process 0's list of missing units, in its order
+            todo = broadcast_object(todo)
         if cfg.jobs > 1 and len(todo) > 1:
             _run_parallel(cfg, todo, progress, _worker_init)
         else:
             for units in todo.values():
                 _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
+    if cfg.distributed:
+        barrier("redman_jax.run_sweep: units done")
+    if not leader:
+        return out
     rows = collect_rows(cfg, store)
     write_table(out, rows)
     timing = write_timing(cfg, store)
