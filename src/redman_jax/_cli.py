@@ -77,7 +77,7 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--distributed", action="store_true",
                    help="join a multi-process run (jax.distributed): start this same command once per "
-                        "node (or per GPU); every simulation's batch is sharded over the devices of all "
+                        "node (it uses all of the node's devices); every simulation's batch is sharded over the devices of all "
                         "processes and process 0 writes --out. The processes are found from the "
                         "cluster's environment (SLURM, Open MPI, ...) unless --coordinator, "
                         "--num-processes and --process-id say")
@@ -130,7 +130,7 @@ def _join_distributed(args) -> None:
             raise CLIError(f"{', '.join(given)}: only with --distributed")
         return
     if str(args.jobs) not in ("auto", "1"):
-        raise CLIError(f"--jobs: a --distributed sweep runs one process per node or device; got --jobs {args.jobs}")
+        raise CLIError(f"--jobs: a --distributed sweep runs one process per node; got --jobs {args.jobs}")
     from ._distributed import initialize
 
     initialize(args.coordinator, args.num_processes, args.process_id)

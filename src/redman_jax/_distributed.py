@@ -1,7 +1,7 @@
 """Several processes (nodes) in one sweep, through ``jax.distributed``.
 
-Every process runs the same command (``redman-jax sweep --distributed ...``, one process per node
-or per GPU). JAX then sees the devices of all processes as one list: each simulation's batch is
+Every process runs the same command (``redman-jax sweep --distributed ...``, one process per node,
+which uses all of its node's devices). JAX then sees the devices of all processes as one list: each simulation's batch is
 sharded over all of them (:func:`~redman_jax._pipeline.shard_batch`) and gathered back to every
 process (:func:`to_host`). The sweep keeps the processes in step: process 0 decides which units
 are missing and hands every process the scenarios it has stored (:func:`broadcast_object`); it

@@ -22,7 +22,7 @@ own (two unpinned XLA processes contend for both cores: 1.3-1.7x slower, see :fu
 The results are the same as with one process (each unit is a deterministic function of its
 configuration; tested).
 
-``distributed`` (``--distributed``): several processes, one per node or device, run the same sweep
+``distributed`` (``--distributed``): several processes, one per node, run the same sweep
 through ``jax.distributed`` (:mod:`redman_jax._distributed`). Each simulation's batch is sharded
 over the devices of all of them; process 0 decides which units are missing, hands every process
 the scenarios it stored, and alone writes ``DIR`` (the others may pass any ``--out``).
@@ -162,7 +162,7 @@ class SweepConfig:
         if not isinstance(self.jobs, int) or self.jobs < 1:
             raise ValueError(f"jobs: need a positive number of worker processes, got {self.jobs!r}")
         if self.distributed and self.jobs != 1:
-            raise ValueError(f"jobs: a distributed sweep runs one process per node or device (jobs=1), "
+            raise ValueError(f"jobs: a distributed sweep runs one process per node (jobs=1), "
                              f"got {self.jobs}")
         from ._sim import SOLVER_CHOICES
 
@@ -195,7 +195,7 @@ class SweepConfig:
         seeds = parse_int_list(args.seeds, "seeds")
         distributed = bool(getattr(args, "distributed", False))
         if distributed and str(args.jobs) not in ("auto", "1"):
-            raise ValueError(f"--jobs: a --distributed sweep runs one process per node or device; got "
+            raise ValueError(f"--jobs: a --distributed sweep runs one process per node; got "
                              f"--jobs {args.jobs}")
         common = dict(out=args.out, seeds=seeds, max_retries=args.max_retries,
                       figures=not args.no_figures, progress=not args.quiet,
