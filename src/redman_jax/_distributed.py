@@ -1,12 +1,13 @@
 """Several processes (nodes) in one sweep, through ``jax.distributed``.
 
 Every process runs the same command (``redman-jax sweep --distributed ...``, one process per node,
-which uses all of its node's devices). JAX then sees the devices of all processes as one list: each simulation's batch is
-sharded over all of them (:func:`~redman_jax._pipeline.shard_batch`) and gathered back to every
-process (:func:`to_host`). The sweep keeps the processes in step: process 0 decides which units
-are missing and hands every process the scenarios it has stored (:func:`broadcast_object`); it
-alone writes the results folder. A scenario build runs in every process (it is not sharded) and
-process 0's is the one kept, so nodes that round differently still simulate the same scenes.
+which uses all of its node's devices). JAX then sees the devices of all processes as one list:
+each simulation's batch is sharded over all of them (:func:`~redman_jax._pipeline.shard_batch`)
+and gathered back to every process (:func:`to_host`). The sweep keeps the processes in step:
+process 0 decides which units are missing and hands every process the scenarios it has stored
+(:func:`broadcast_object`); it alone writes the results folder. A scenario build runs in every
+process (it is not sharded) and process 0's is the one kept, so nodes that round differently
+still simulate the same scenes.
 
 On CPU the processes exchange data with gloo (``jax_cpu_collectives_implementation``), which is
 how the tests run two processes on one machine.
