@@ -453,8 +453,14 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
                 _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
     if cfg.distributed:
         barrier("redman_jax.run_sweep: units done")
-    if not leader:
-        return out
+    if leader:
+        _write_results(cfg, out, store)
+    if cfg.distributed:  # the others wait for process 0's table and report, then all leave together
+        barrier("redman_jax.run_sweep: results written")
+    return out
+
+
+def _write_results(cfg: SweepConfig, out: Path, store: UnitStore) -> None:
     rows = collect_rows(cfg, store)
     write_table(out, rows)
     timing = write_timing(cfg, store)
@@ -464,7 +470,6 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
         from ._report import make_report
 
         make_report(out)
-    return out
 
 
 def _worker_cores(jobs: int) -> list[int]:
