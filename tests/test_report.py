@@ -378,3 +378,43 @@ def test_gradient_claims_count_scenes_with_a_displaced_field_minimum(tmp_path):
     assert f"more than 0.10 m from the goal in {n_far}/{len(grad)} scenes" in why
     assert f"success in the other {len(grad) - n_far}: {n_ok_near}" in why
     assert "0.10 m from the goal" not in _claims(tmp_path)["R2.b"].why  # no column there: no note
+
+
+def test_a_figure_with_prefetch_computes_in_a_background_thread(tmp_path, monkeypatch):
+    """make_report starts a figure's ``prefetch`` (Fig. 3.6's step responses) in a thread of its own
+    before drawing the other figures and hands its result to ``make``; an error in the background
+    computation is that figure's reason for not being generated, and the others are drawn."""
+    import threading
+
+    synthetic_study(tmp_path)
+    ran = {}
+
+    def compute(d):
+        ran["thread"] = threading.current_thread().name
+        return [0.0, 1.0, 0.5]
+
+    def draw(d, path, data):
+        from matplotlib.figure import Figure
+
+        ran["data"] = data
+        ran["drawn_in"] = threading.current_thread().name
+        fig = Figure(figsize=(3, 2))
+        fig.add_subplot(111).plot(data)
+        fig.savefig(path)
+        return path
+
+    def broken(d):
+        raise RuntimeError("no step")
+
+    hooks = (FigureSpec("fig3_6_step_responses.png", "3.6", "steps", draw, prefetch=compute),
+             FigureSpec("fig3_7_perfect_controller.png", "3.7", "perfect", draw, prefetch=broken))
+    monkeypatch.setattr(report_mod, "HOOKS", hooks)
+    text = make_report(tmp_path).read_text()
+    assert ran["thread"].startswith("redman-report") and ran["drawn_in"] == threading.current_thread().name
+    assert ran["data"] == [0.0, 1.0, 0.5]
+    assert _is_png(tmp_path / "figures" / "fig3_6_step_responses.png")
+    assert "* Fig. 3.7 (fig3_7_perfect_controller.png): not generated (RuntimeError: no step)" in text
+    for spec in FIGURES:
+        assert _is_png(tmp_path / "figures" / spec.file), spec.file
+    # the step-response figure of the study is one with a prefetch
+    assert [s.file for s in HOOKS if s.prefetch] == ["fig3_6_step_responses.png"]  # (imported before the patch)
