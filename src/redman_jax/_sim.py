@@ -1065,12 +1065,12 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     simulated by the same compiled program on a host thread of its own, at once. None (default):
     one chunk per core this process may run on (``os.sched_getaffinity``), at most one per
     ``_MIN_CHUNK`` members, and 1 on other backends, under a trace or for a batch sharded over
-    several processes (where ``threads`` must be None or 1). Why: at the study's batch of 20, a program's operations are small and XLA's CPU
-    runtime spends most of its time dispatching them, so one program cannot keep two cores busy;
-    two programs of half the batch can (2-core CPU, 9-DOF simple case, joint space, 20 seeds,
-    warm: 6.0 s in one call, 3.1 s in two threads; ``benchmarks/bench_sim.py --threads``). Each
-    member takes the same steps and flags as in one call and agrees with it to rounding
-    (the programs are compiled for another batch size).
+    several processes (where ``threads`` must be None or 1). Why: at the study's batch of 20, a
+    program's operations are small and XLA's CPU runtime spends most of its time dispatching them,
+    so one program cannot keep two cores busy; two programs of half the batch can (2-core CPU,
+    9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in two threads;
+    ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and flags as in one
+    call and agrees with it to rounding (the programs are compiled for another batch size).
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenarios, controller, ik, batched=True)
