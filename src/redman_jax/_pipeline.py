@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._distributed import is_multiprocess, to_host
 from ._obstacles import compact_obstacles
 
 __all__ = ["build_case", "run_controller", "make_gains", "shard_batch", "study_shapes", "pad_case"]
@@ -50,7 +51,7 @@ def shard_batch(tree):
 
     mesh = Mesh(np.array(devices), ("batch",))
 
-    multi = jax.process_count() > 1
+    multi = is_multiprocess()
 
     def put(x):
         if not hasattr(x, "ndim") or x.ndim == 0:
@@ -224,7 +225,6 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     grouping of the sum over slots)."""
     from ._controllers import CONTROLLERS
     from ._metrics import controller_time_per_sample
-    from ._distributed import to_host
     from ._sim import SimParams, simulate_batch
 
     controller = CONTROLLERS[ctrl_name]()

@@ -1108,15 +1108,13 @@ def _chunks(threads, R: int, tree) -> int:
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
                                 or threads < 1):
         raise ValueError(f"simulate_batch: threads must be a positive int or None, got {threads!r}")
-    if _has_tracer(tree):
+    # where the batch is one program: under a trace, or sharded over several processes
+    one_program = ("concrete inputs (called under a trace, the batch is one program)" if _has_tracer(tree)
+                   else "a batch held by this process (it is sharded over several processes: one program)"
+                   if _spans_processes(tree) else None)
+    if one_program is not None:
         if threads not in (None, 1):
-            raise ValueError(f"simulate_batch: threads={threads} needs concrete inputs (called under a "
-                             "trace, the batch is one program); pass threads=None or 1")
-        return 1
-    if _spans_processes(tree):
-        if threads not in (None, 1):
-            raise ValueError(f"simulate_batch: threads={threads} needs a batch held by this process (it is "
-                             "sharded over several processes: one program); pass threads=None or 1")
+            raise ValueError(f"simulate_batch: threads={threads} needs {one_program}; pass threads=None or 1")
         return 1
     if threads is None:
         if jax.default_backend() != "cpu":

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._distributed import barrier, broadcast_object
+from ._distributed import barrier, broadcast_object, is_leader
 from ._progress import Progress
 from ._scenario import CASES
 from ._store import UnitStore, atomic_write_bytes, atomic_write_text, config_hash
@@ -194,12 +194,11 @@ class SweepConfig:
 
         seeds = parse_int_list(args.seeds, "seeds")
         distributed = bool(getattr(args, "distributed", False))
-        if distributed and str(args.jobs) not in ("auto", "1"):
-            raise ValueError(f"--jobs: a --distributed sweep runs one process per node; got "
-                             f"--jobs {args.jobs}")
+        # distributed: one process per node, so 'auto' is 1 (any other count is refused below)
+        jobs = 1 if distributed and args.jobs in (None, "auto") else _jobs(args.jobs)
         common = dict(out=args.out, seeds=seeds, max_retries=args.max_retries,
-                      figures=not args.no_figures, progress=not args.quiet,
-                      jobs=1 if distributed else _jobs(args.jobs), distributed=distributed)
+                      figures=not args.no_figures, progress=not args.quiet, jobs=jobs,
+                      distributed=distributed)
         if study:
             return cls(**common)
         arms = tuple(dict.fromkeys(a.strip() for a in args.arms.split(",") if a.strip()))
@@ -372,8 +371,9 @@ def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
         payload = pipe.build_case(arm, case, cfg.seeds, ts=cfg.ts, max_retries=cfg.max_retries)
     else:
         scen_name = f"scen_{_arm_label(arm_spec)}_{case}"
-        scen = broadcast_object(store.load(scen_name) if _leader(cfg) else None) if cfg.distributed \
-            else store.load(scen_name)
+        scen = store.load(scen_name) if _leader(cfg) else None
+        if cfg.distributed:  # process 0's stored scenes in every process
+            scen = broadcast_object(scen)
         payload = pipe.run_controller(arm, scen, ctrl, (cfg.gains or {}).get(ctrl),
                                       sim_params=_sim_params(cfg), shapes=_sim_shapes(cfg, case, ctrl))
         payload["rows"] = [dict(r, arm=_arm_label(arm_spec)) for r in payload["rows"]]
@@ -384,11 +384,7 @@ def _compute_unit(cfg: SweepConfig, store: UnitStore, arms: dict, unit) -> None:
 def _leader(cfg: SweepConfig) -> bool:
     """Whether this process writes the results folder: always, but in a distributed sweep
     (:mod:`redman_jax._distributed`) only process 0."""
-    if not cfg.distributed:
-        return True
-    from ._distributed import is_leader
-
-    return is_leader()
+    return not cfg.distributed or is_leader()
 
 
 def _run_group(cfg: SweepConfig, units: list, report=None) -> None:
