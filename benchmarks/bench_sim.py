@@ -2,7 +2,7 @@
 *same* closed loop, for the study's controllers on the study's scenarios.
 
 Run: ``.venv/bin/python benchmarks/bench_sim.py [--cases welding simple] [--controllers velocity]
-[--seeds 20] [--scipy-seeds 1] [--scipy-samples 100] [--dof 9] [--threads N]``
+[--seeds 20] [--scipy-seeds 1] [--scipy-samples 100] [--dof 9] [--threads N] [--xla-flags study]``
 
 What is compared, per case and controller (scenarios and IK joint references from
 ``redman_jax._pipeline.build_case``, the study's seeds ``1..seeds``):
@@ -12,6 +12,9 @@ What is compared, per case and controller (scenarios and IK joint references fro
   ``threads`` (one ``jit(vmap)`` program on a chunk of the seeds per core, all at once: two chunks
   of 10 on a 2-core machine; ``--threads 1``: one program over all seeds). *Cold* is the first
   call (tracing + compilation + run), *warm* the second call.
+  ``--xla-flags study`` starts JAX with the XLA flags the study's workers use
+  (``redman_jax._study.WORKER_XLA_FLAGS``: XLA's older CPU loop emitters, no YNNPACK fusions), as
+  ``make run`` simulates; the default is JAX's own flags.
 * **NumPy + SciPy**: the closed loop re-implemented below in plain NumPy (nothing jitted, no JAX
   call inside the vector field): forward kinematics, Jacobians, ``J_dot q_dot``, mass matrix and
   Newton-Euler bias forces, joint-limit contact (3.6), points of interest and their Jacobians,
@@ -581,13 +584,28 @@ def main(argv=None):
                     help="simulate_batch's threads (default: its own choice, one chunk of the batch per core)")
     ap.add_argument("--exact-evals", action="store_true",
                     help="check the JAX evaluation count of seed 1 with a counting callback (recompiles)")
+    ap.add_argument("--xla-flags", choices=("default", "study"), default="default",
+                    help="'study': start JAX with the XLA flags the study's workers use "
+                         "(redman_jax._study.WORKER_XLA_FLAGS, added to $XLA_FLAGS)")
     args = ap.parse_args(argv)
+    if args.xla_flags == "study":
+        from jax._src import xla_bridge
+
+        from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts
+
+        if xla_bridge.backends_are_initialized():
+            raise SystemExit("--xla-flags study: JAX's backend is already started; XLA reads its flags at the start")
+        flags = _with_flags(os.environ.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)
+        if not _xla_accepts(flags):
+            raise SystemExit(f"--xla-flags study: this jaxlib does not start with XLA_FLAGS={flags!r}")
+        os.environ["XLA_FLAGS"] = flags
 
     params = SimParams()
     rtol, atol = float(params.rtol), float(params.atol)
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cpus (shared); python {platform.python_version()}")
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r} (--xla-flags {args.xla_flags})")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()}), numpy {np.__version__}, "
           f"scipy {scipy.__version__}, x64={jax.config.jax_enable_x64}")
     from redman_jax._sim import _chunks
