@@ -569,6 +569,11 @@ def _one_core_while_spawning(core):
 # -> 9.53 / 7.88 warm. The older (LLVM IR) loop emitters compile about twice as fast and, at these
 # small batches, run faster too; YNNPACK's fusions of the small dots cost more per call than XLA's
 # own. Results differ from the default flags' by rounding only (the same steps on these runs).
+# They suit these small batches only: at batch 1024 (benchmarks/bench_controllers.py, 2 cores) they
+# are about 2x slower (velocity OSC 9.4 -> 16.0, original velocity OSC 20.7 -> 42.7 us per state).
+# bench_sim.py --xla-flags study runs the simulation benchmark with them (20 seeds, 2 threads of 10:
+# the speed-up over SciPy from min 39x / median 77x to 48x / 112x in one run each, though the three
+# agriculture rows came out slower, e.g. velocity 181x -> 148x).
 WORKER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
 
 
