@@ -9,19 +9,24 @@ For each controller: ``jit`` (batch 1) and ``jit(vmap)`` at batch 20 and 1024, w
 reference per-point vmap of ``_fields.obstacle_field_gradient``, ``M`` and ``c + g`` formed
 explicitly, ``J_dot q_dot`` by a jvp) is timed in the same run as "before".
 
-Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9]``
-(``JAX_PLATFORMS=cpu taskset -c 0,1`` for the 2-core CPU figure).
+Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9] [--devices N]``
+(``JAX_PLATFORMS=cpu taskset -c 0,1`` for the 2-core CPU figure). ``--devices 2`` splits the CPU
+into two XLA devices and runs every batch they divide (20, 1024) as one shard per device
+(``shard_map``), as a user would spread a batch over the cores; the naive layout stays on one
+device (see ``sharded`` in ``main``).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 import redman_jax as rj
 from redman_jax._control_types import ControlState, RefSample, make_environment
@@ -88,9 +93,41 @@ def main():
     ap.add_argument("--dof", type=int, default=9)
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient,pid,velocity_original,impedance")
     ap.add_argument("--calls", type=int, default=2048, help="at least this many states per timing (and >= 10 calls, >= 0.3 s)")
+    ap.add_argument("--devices", type=int, default=None,
+                    help="CPU: split the host into this many XLA devices (--xla_force_host_platform_device_count) "
+                         "and run every batch they divide as one shard per device")
     args = ap.parse_args()
+    if args.devices is not None:
+        from jax._src import xla_bridge
+
+        if args.devices < 1:
+            raise SystemExit(f"--devices: expected a positive count, got {args.devices}")
+        if xla_bridge.backends_are_initialized():
+            raise SystemExit("--devices: JAX's backend is already started; XLA reads its flags at the start")
+        flag = f"--xla_force_host_platform_device_count={args.devices}"
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
-          f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}")
+          f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}, "
+          f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    devices = jax.devices()
+    mesh = Mesh(np.array(devices), ("batch",))
+    spec = PartitionSpec("batch")
+
+    def sharded(B, naive):
+        """Whether a batch runs as one shard per device: where the devices divide it, and never for
+        the naive layout, whose LAPACK calls (SVD, inverse) can deadlock jaxlib's CPU thread pool when
+        several host devices run them at once (seen on 2 cores: every pool thread waiting in
+        ``jax::ParallelBatchMap`` of the batched SVD kernel)."""
+        return len(devices) > 1 and B % len(devices) == 0 and not naive
+
+    def batched(fn, B, naive):
+        """``jit(vmap(fn))``, sharded: each device runs it on its own shard (no communication)."""
+        if not sharded(B, naive):
+            return jax.jit(jax.vmap(fn))
+        return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False))
+
+    def place(tree, B, naive):
+        return jax.device_put(tree, NamedSharding(mesh, spec)) if sharded(B, naive) else tree
     rng = np.random.default_rng(0)
     arm = rj.thesis_arm(args.dof)
     n = arm.n_dof
@@ -142,8 +179,9 @@ def main():
                 f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
                 us, us_min, tc = timed(f, gains, *one, batch=1)
             else:
-                f = jax.jit(jax.vmap(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref)))
-                us, us_min, tc = timed(f, sl[0], sl[1], z, sl[2], batch=B)
+                naive = ctrl is None
+                f = batched(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref), B, naive)
+                us, us_min, tc = timed(f, *place((sl[0], sl[1], z, sl[2]), B, naive), batch=B)
             base = THESIS_MS.get(name.replace("_naive", ""))
             ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
             rows.append((name, B, us, us_min, tc))
