@@ -248,7 +248,7 @@ def _laguerre(G):
 
     # a rolled loop: the unrolled k x k inverse is compiled once (compile time ~4x lower); the
     # last iteration's inverse is only needed for the polish vector
-    mu = jax.lax.fori_loop(0, _LAGUERRE_ITERS - 1, step, jnp.zeros((), G.dtype))
+    mu = jax.lax.fori_loop(0, _LAGUERRE_ITERS - 1, step, jnp.zeros_like(G[0, 0]))  # (varies as G does, shard_map)
     X = jnp.stack([jnp.stack(row) for row in inverse_at(mu)])
     X = X / jnp.max(jnp.abs(X))
     d = jnp.diagonal(X)
