@@ -121,10 +121,11 @@ def main():
         return len(devices) > 1 and B % len(devices) == 0 and not naive
 
     def batched(fn, B, naive):
-        """``jit(vmap(fn))``, sharded: each device runs it on its own shard (no communication)."""
+        """``jit(vmap(fn))``, sharded: each device runs it on its own shard (no communication;
+        ``shard_map``'s varying-type check on, as a user would have it)."""
         if not sharded(B, naive):
             return jax.jit(jax.vmap(fn))
-        return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False))
+        return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec))
 
     def place(tree, B, naive):
         return jax.device_put(tree, NamedSharding(mesh, spec)) if sharded(B, naive) else tree
