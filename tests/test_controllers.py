@@ -515,11 +515,15 @@ def test_every_controller_runs_under_shard_map():
     B = 4
     qs = jnp.asarray(Q_START + rng.uniform(-0.1, 0.1, (B, N)))
     qds = jnp.asarray(rng.normal(size=(B, N)) * 0.1)
-    p, quat = jax.vmap(lambda q: rj.end_effector_pose(ARM, q))(qs)
-    env = make_environment(obs, p[0] + 0.1, quat[0])
-    z3 = jnp.zeros((B, 3))
-    refs = RefSample(p=p + 0.01, v=z3, a=z3, quat=quat, omega=z3, omega_dot=z3, rot=jnp.ones((B,)),
-                     q=qs + 0.01, qd=jnp.zeros_like(qs), qdd=jnp.zeros_like(qs))
+
+    def ref_near(q):  # a reference sample a little off the state's own pose
+        p, quat = rj.end_effector_pose(ARM, q)
+        z3, zn = jnp.zeros(3), jnp.zeros(N)
+        return RefSample(p=p + 0.01, v=z3, a=z3, quat=quat, omega=z3, omega_dot=z3, rot=jnp.ones(()),
+                         q=q + 0.01, qd=zn, qdd=zn)
+
+    refs = jax.vmap(ref_near)(qs)
+    env = make_environment(obs, refs.p[0] + 0.1, refs.quat[0])
     mesh = Mesh(np.array(jax.devices()[:1]), ("batch",))
     spec = PartitionSpec("batch")
     for name in CONTROLLERS:
