@@ -98,14 +98,14 @@ def main():
                          "and run every batch they divide as one shard per device")
     args = ap.parse_args()
     if args.devices is not None:
-        from jax._src import xla_bridge
+        from _xla_start import start_with_xla_flags
 
         if args.devices < 1:
             raise SystemExit(f"--devices: expected a positive count, got {args.devices}")
-        if xla_bridge.backends_are_initialized():
-            raise SystemExit("--devices: JAX's backend is already started; XLA reads its flags at the start")
-        flag = f"--xla_force_host_platform_device_count={args.devices}"
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+        start_with_xla_flags((f"--xla_force_host_platform_device_count={args.devices}",), "--devices")
+        if len(jax.devices()) != args.devices:  # $XLA_FLAGS named another count
+            raise SystemExit(f"--devices {args.devices}: JAX started with {len(jax.devices())} devices "
+                             f"(XLA_FLAGS={os.environ['XLA_FLAGS']!r})")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
@@ -120,15 +120,13 @@ def main():
         ``jax::ParallelBatchMap`` of the batched SVD kernel)."""
         return len(devices) > 1 and B % len(devices) == 0 and not naive
 
-    def batched(fn, B, naive):
-        """``jit(vmap(fn))``, sharded: each device runs it on its own shard (no communication;
-        ``shard_map``'s varying-type check on, as a user would have it)."""
+    def batched(fn, args, B, naive):
+        """``(jit(vmap(fn)), args)``; sharded, each device runs it on its own shard of ``args`` (no
+        communication; ``shard_map``'s varying-type check on, as a user would have it)."""
         if not sharded(B, naive):
-            return jax.jit(jax.vmap(fn))
-        return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec))
-
-    def place(tree, B, naive):
-        return jax.device_put(tree, NamedSharding(mesh, spec)) if sharded(B, naive) else tree
+            return jax.jit(jax.vmap(fn)), args
+        f = jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec))
+        return f, jax.device_put(args, NamedSharding(mesh, spec))
     rng = np.random.default_rng(0)
     arm = rj.thesis_arm(args.dof)
     n = arm.n_dof
@@ -180,9 +178,9 @@ def main():
                 f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
                 us, us_min, tc = timed(f, gains, *one, batch=1)
             else:
-                naive = ctrl is None
-                f = batched(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref), B, naive)
-                us, us_min, tc = timed(f, *place((sl[0], sl[1], z, sl[2]), B, naive), batch=B)
+                f, a = batched(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref),
+                               (sl[0], sl[1], z, sl[2]), B, naive=ctrl is None)
+                us, us_min, tc = timed(f, *a, batch=B)
             base = THESIS_MS.get(name.replace("_naive", ""))
             ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
             rows.append((name, B, us, us_min, tc))

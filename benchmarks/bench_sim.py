@@ -589,16 +589,11 @@ def main(argv=None):
                          "(redman_jax._study.WORKER_XLA_FLAGS, added to $XLA_FLAGS)")
     args = ap.parse_args(argv)
     if args.xla_flags == "study":
-        from jax._src import xla_bridge
+        from _xla_start import start_with_xla_flags
 
-        from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts
+        from redman_jax._study import WORKER_XLA_FLAGS
 
-        if xla_bridge.backends_are_initialized():
-            raise SystemExit("--xla-flags study: JAX's backend is already started; XLA reads its flags at the start")
-        flags = _with_flags(os.environ.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)
-        if not _xla_accepts(flags):
-            raise SystemExit(f"--xla-flags study: this jaxlib does not start with XLA_FLAGS={flags!r}")
-        os.environ["XLA_FLAGS"] = flags
+        start_with_xla_flags(WORKER_XLA_FLAGS, "--xla-flags study")
 
     params = SimParams()
     rtol, atol = float(params.rtol), float(params.atol)
