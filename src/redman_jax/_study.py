@@ -574,6 +574,14 @@ def _one_core_while_spawning(core):
 # bench_sim.py --xla-flags study runs the simulation benchmark with them (20 seeds, 2 threads of 10:
 # the speed-up over SciPy from min 39x / median 77x to 48x / 112x in one run each, though the three
 # agriculture rows came out slower, e.g. velocity 181x -> 148x).
+# Per unit, the fusion emitters (the XLA default) run the obstacle-heavy units faster but compile
+# them about twice as long, so the flags win in every unit of the study, cold: the 9-DOF sweep of
+# all cases, one process per core, both at once (s, unit wall = compiling + running, these flags
+# against --xla_cpu_use_fusion_emitters=true): warehouse gradient-guided 148.5 = 35.9 + 112.6
+# against 163.2 = 68.3 + 94.9, agriculture gradient-guided 103.6 against 121.5, warehouse
+# acceleration 57.6 against 67.1; all 18 units 597 against 686. The compile time is the emitters'
+# (9-DOF velocity OSC, simple case, one core: 7.9 s with both flags, 8.1 s with the emitters off
+# alone, 16.7 s with YNNPACK's fusions off alone).
 WORKER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
 
 
