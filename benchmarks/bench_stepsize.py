@@ -20,20 +20,16 @@ Run: ``python benchmarks/bench_stepsize.py [--dof 9] [--seeds 1-4] [--cases ...]
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import time
 
 import jax
 import numpy as np
+from bench_tolerance import (REFERENCE, compare, reference_complete, reference_params, study_arguments,
+                             study_closed_loops)
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
-import redman_jax as rj  # noqa: E402
-from redman_jax._cli import parse_int_list  # noqa: E402
-from redman_jax._sim import SimParams  # noqa: E402
-
-from bench_tolerance import FLAGS, METRICS, REFERENCE, max_rel_dev, study_arguments, study_closed_loops  # noqa: E402
+import redman_jax as rj
+from redman_jax._cli import parse_int_list
+from redman_jax._sim import SimParams
 
 CANDIDATES = ((0.0, 1.0), (0.4, 0.3), (0.3, 0.3), (0.2, 0.4), (0.1, 0.3))
 
@@ -63,10 +59,9 @@ def main():
             arm, args.cases.split(","), args.controllers.split(","), seeds):
         ref = None
         if args.reference:
-            p = SimParams(rtol=REFERENCE[0], atol=REFERENCE[1], solver="tsit5",
-                          max_steps_per_sample=args.ref_budget)
-            ref = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p)).metrics
-            if not np.all(np.isfinite(np.asarray(ref.final_pos_err))):
+            ref = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg,
+                                                          params=reference_params(args.ref_budget))).metrics
+            if not reference_complete(ref):
                 print(f"{case:12s} {name:13s} reference incomplete (raise --ref-budget); no deviations")
                 ref = None
         sim = lambda c: rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg,  # noqa: E731
@@ -82,10 +77,7 @@ def main():
             line = (f"{case:12s} {name:13s} {c[0]:.1f},{c[1]:.1f} {int(steps.sum()):7d} "
                     f"{100.0 * rej.sum() / max(1, steps.sum()):6.1f} {int(steps.max()):6d} {wall:7.2f}")
             if ref is not None:
-                m = res.metrics
-                devs = [max_rel_dev(getattr(m, f), getattr(ref, f)) for f in METRICS]
-                same = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
-                           for f in FLAGS)
+                devs, same = compare(res.metrics, ref)
                 worst[c] = max(worst[c], *devs)
                 line += f" {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} {'same' if same else 'DIFFER'}"
             print(line, flush=True)

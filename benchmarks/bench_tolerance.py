@@ -58,6 +58,25 @@ def study_closed_loops(arm, cases, controllers, seeds):
         jax.clear_caches()
 
 
+def reference_params(budget: int) -> SimParams:
+    """The reference run's parameters: Tsit5 at ``REFERENCE`` tolerances, ``budget`` steps per sample."""
+    return SimParams(rtol=REFERENCE[0], atol=REFERENCE[1], solver="tsit5", max_steps_per_sample=budget)
+
+
+def reference_complete(ref) -> bool:
+    """Whether every seed of the reference's metrics finished (not out of its step budget, not
+    diverged); an incomplete reference is no evidence."""
+    return bool(np.all(np.isfinite(np.asarray(ref.final_pos_err))))
+
+
+def compare(m, ref) -> tuple[tuple[float, ...], bool]:
+    """``(devs, same)``: the largest relative deviation over the seeds of each of ``METRICS`` from
+    the reference, and whether the ``FLAGS`` agree seed by seed."""
+    devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f)) for f in METRICS)
+    same = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f))) for f in FLAGS)
+    return devs, same
+
+
 def _rel_mean(a, b):
     return max_rel_dev(np.mean(np.asarray(a, float)), np.mean(np.asarray(b, float)))
 
@@ -90,24 +109,22 @@ def main():
         runs = {}
         for rtol, atol in (REFERENCE,) + CANDIDATES:
             if (rtol, atol) == REFERENCE:
-                p = SimParams(rtol=rtol, atol=atol, solver="tsit5", max_steps_per_sample=args.ref_budget)
+                p = reference_params(args.ref_budget)
             else:
                 p = SimParams(rtol=rtol, atol=atol, solver=args.solver)
             t0 = time.perf_counter()
             res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
             runs[(rtol, atol)] = (res, time.perf_counter() - t0)
         ref = runs[REFERENCE][0].metrics
-        ref_ok = bool(np.all(np.isfinite(np.asarray(ref.final_pos_err))))
+        ref_ok = reference_complete(ref)
         if not ref_ok:  # the reference ran out of its step budget (or diverged): no evidence
             print(f"{case:12s} {name:13s} reference incomplete for seeds "
                   f"{[s for s, f in zip(seeds, np.asarray(ref.final_pos_err)) if not np.isfinite(f)]} "
                   f"(step budget {args.ref_budget}/sample; raise --ref-budget); row left out of the summary")
         for key, (res, wall) in runs.items():
             m = res.metrics
-            devs = tuple(max_rel_dev(getattr(m, f), getattr(ref, f)) for f in METRICS)
+            devs, flags = compare(m, ref)
             mdevs = tuple(_rel_mean(getattr(m, f), getattr(ref, f)) for f in METRICS)
-            flags = all(np.array_equal(np.asarray(getattr(m, f)), np.asarray(getattr(ref, f)))
-                        for f in FLAGS)
             if key in worst and ref_ok:
                 worst[key] = max(worst[key], *devs)
                 worst_mean[key] = max(worst_mean[key], *mdevs)
