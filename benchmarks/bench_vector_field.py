@@ -8,7 +8,13 @@ each study controller with ``jit(vmap)`` at batch 20 (the study: one case's seed
 (``obstacle_gradients``, fused vs the per-point reference) and the flag's distances
 (``points_min_distance`` vs the per-point ``(m, K)`` evaluation it replaced).
 
-Run: ``python benchmarks/bench_vector_field.py [--batches 20,1024] [--controllers ...]``
+``--case NAME`` (e.g. ``warehouse``) takes the obstacles of that generated case instead (seed 1,
+compacted, laid out for each batch size as the simulator lays them out: the warehouse's boxes in
+groups, ``_obstacles.auto_slots_per_step``), and times the closed loop only. For the figures of the
+study's workers run it on one core: ``taskset -c 0`` with the study's ``XLA_FLAGS``
+(``redman_jax._study.WORKER_XLA_FLAGS``).
+
+Run: ``python benchmarks/bench_vector_field.py [--batches 20,1024] [--controllers ...] [--case NAME]``
 """
 
 from __future__ import annotations
@@ -45,25 +51,38 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--batches", default="20,1024")
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient")
+    ap.add_argument("--case", default=None, help="the obstacles of this generated case (seed 1)")
     args = ap.parse_args()
     arm = rj.thesis_arm(9)
     n = arm.n_dof
     obs = scene(np.random.default_rng(0))
-    env = make_environment(obs, jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0, 0, 0]), 20)
+    if args.case is not None:
+        from redman_jax._obstacles import compact_obstacles
+
+        obs = compact_obstacles(rj.make_scenario(args.case, 1, arm).obstacles)
     rng = np.random.default_rng(1)
     a, D = jnp.asarray(0.05), jnp.asarray(0.75)
     print(f"jax {jax.__version__}, {jax.devices()[0]}, {platform.machine()}, x64={jax.config.jax_enable_x64}; "
-          "us per state (best of 7)")
+          f"us per state (best of 7); obstacles {args.case or 'random 40'} {obs.capacities}")
     for B in (int(b) for b in args.batches.split(",")):
         Q = jnp.asarray(rng.uniform(-1, 1, (B, n)))
         QD = jnp.asarray(rng.uniform(-1, 1, (B, n)))
-        pois = lambda q: poi_positions_from(arm, kinematics(arm, q), q)  # noqa: E731
-        ref_d = timed(lambda q: jax.vmap(lambda x: jnp.min(rj.obstacle_distances(obs, x)))(pois(q)), B, Q)
-        new_d = timed(lambda q: rj.points_min_distance(obs, pois(q)), B, Q)
-        ref_g = timed(lambda q: obstacle_gradients(obs, pois(q), a, D, impl="reference"), B, Q)
-        new_g = timed(lambda q: obstacle_gradients(obs, pois(q), a, D), B, Q)
-        print(f"batch {B:5d}  flag distances: per-point {ref_d:7.2f}  fused {new_d:6.2f}   "
-              f"policy gradients: reference {ref_g:7.2f}  fused {new_g:6.2f}")
+        env = make_environment(obs, jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0, 0, 0]), 20)
+        if args.case is not None:  # the simulator's layout at this batch size (_sim._with_layout)
+            from redman_jax._obstacles import (auto_slots_per_step, pad_to_layout, used_bound,
+                                               with_slots_per_step, with_used)
+
+            o = pad_to_layout(with_slots_per_step(obs, auto_slots_per_step(B, n * arm.points_per_link)))
+            env = make_environment(with_used(o, used_bound(o)), jnp.array([0.3, 0.2, 0.8]),
+                                   jnp.array([1.0, 0, 0, 0]), 20)
+        if args.case is None:  # the two obstacle passes alone (random scene)
+            pois = lambda q: poi_positions_from(arm, kinematics(arm, q), q)  # noqa: E731
+            ref_d = timed(lambda q: jax.vmap(lambda x: jnp.min(rj.obstacle_distances(obs, x)))(pois(q)), B, Q)
+            new_d = timed(lambda q: rj.points_min_distance(obs, pois(q)), B, Q)
+            ref_g = timed(lambda q: obstacle_gradients(obs, pois(q), a, D, impl="reference"), B, Q)
+            new_g = timed(lambda q: obstacle_gradients(obs, pois(q), a, D), B, Q)
+            print(f"batch {B:5d}  flag distances: per-point {ref_d:7.2f}  fused {new_d:6.2f}   "
+                  f"policy gradients: reference {ref_g:7.2f}  fused {new_g:6.2f}")
         for name in args.controllers.split(","):
             c = CONTROLLERS[name]()
             g = c.default_gains()
