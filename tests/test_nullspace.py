@@ -545,6 +545,33 @@ def test_slot_layouts_compute_the_same(rng, spp):
     np.testing.assert_allclose(np.asarray(gb[0]), gs, rtol=1e-12, atol=1e-14 * np.abs(gr).max())
 
 
+@pytest.mark.parametrize("spp", [7, 40])
+def test_grouped_slot_steps_differentiate_like_single_slots(rng, spp):
+    """Grouped slot steps sum their planes in one variadic ``lax.reduce`` (``_sum_leading``), which
+    has no transpose rule of its own: forward mode along the points (the analytic tangent rule),
+    reverse mode through it, and derivatives w.r.t. the potential's ``a`` and ``D`` (the rule's
+    plain forward-mode fallback) equal those of the one-slot-per-step layout."""
+    from redman_jax._obstacles import with_slots_per_step
+
+    obs = _many_obstacles(rng)
+    grouped = with_slots_per_step(obs, spp)
+    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (60, 3)))
+    V, W = (jnp.asarray(rng.normal(size=(60, 3))) for _ in range(2))
+    planes = lambda P: tuple(P[:, j] for j in range(3))
+
+    def derivatives(o):
+        tan = jax.jvp(lambda *x: _obstacle_gradient_planes(o, x, 0.05, 0.75), planes(X), planes(V))[1]
+        rev = jax.grad(lambda P: jnp.sum(obstacle_gradients(o, P, 0.05, 0.75) * W))(X)
+        aD = jax.grad(lambda a, D: jnp.sum(obstacle_gradients(o, X, a, D) * W), argnums=(0, 1))(0.05, 0.75)
+        return jnp.stack(tan, axis=1), rev, jnp.stack(aD)
+
+    one, grp = jax.jit(derivatives)(obs), jax.jit(derivatives)(grouped)
+    for a, b in zip(one, grp):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.abs(a).max() > 0
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
+
+
 @_default_emitters_only
 @pytest.mark.parametrize("spp", [1, 7, 16, 45])
 def test_padding_to_the_layout_keeps_the_groups_and_the_sums(rng, spp):

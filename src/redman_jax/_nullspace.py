@@ -586,11 +586,14 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
     return _from_slot(R, tl)
 
 
-def _fold_families(obs, init, slot_fn):
+def _fold_families(obs, init, slot_fn, n_linear: int = 0):
     """``sum`` over every active slot of every family of ``slot_fn(kind, *slot)`` (a tuple of
-    ``(m,)`` planes), one :func:`~redman_jax._obstacles.fold_slots` per family."""
+    ``(m,)`` planes), one :func:`~redman_jax._obstacles.fold_slots` per family. The last
+    ``n_linear`` planes (tangents, inside a JVP rule) are summed by ``jnp.sum`` one by one, which
+    reverse mode can transpose; the others by :func:`_sum_leading`."""
     from ._obstacles import fold_slots
 
+    k = len(init) - n_linear
     acc = init
     for i, kind in enumerate(("spheres", "boxes", "cylinders")):
         if getattr(obs, kind).capacity == 0:
@@ -599,14 +602,16 @@ def _fold_families(obs, init, slot_fn):
         def step(acc, slot, c, kind=kind):
             if c == 1:
                 gs = slot_fn(kind, *slot)
-            else:  # c slots at once, (c, m) planes summed over the slots in one reduction
-                gs = _sum_leading(jax.vmap(lambda *sl: slot_fn(kind, *sl))(*slot))
+            else:  # c slots at once, (c, m) planes summed over the slots
+                gs = jax.vmap(lambda *sl: slot_fn(kind, *sl))(*slot)
+                gs = _sum_leading(gs[:k]) + tuple(jnp.sum(x, axis=0) for x in gs[k:])
             return tuple(x + y for x, y in zip(acc, gs))
 
         acc = fold_slots(obs, i, acc, step)
     return acc
 
 
+@jax.custom_jvp
 def _sum_leading(planes: tuple) -> tuple:
     """``tuple(jnp.sum(x, axis=0) for x in planes)`` as *one* variadic ``lax.reduce``. XLA's CPU
     backend fuses the element-wise work that produces the planes into that single reduction loop,
@@ -621,6 +626,14 @@ def _sum_leading(planes: tuple) -> tuple:
     (gradient-guided), compilation included. Sums in another order: results agree to rounding."""
     zero = tuple(jnp.zeros((), x.dtype) for x in planes)
     return tuple(jax.lax.reduce(tuple(planes), zero, lambda u, v: tuple(a + b for a, b in zip(u, v)), (0,)))
+
+
+@_sum_leading.defjvp
+def _sum_leading_jvp(primals, tangents):
+    """The sum is linear: tangents summed by ``jnp.sum`` (a reduction with a transpose rule, which
+    the generic variadic reduce lacks), so reverse mode works through the grouped slot steps."""
+    (planes,), (dplanes,) = primals, tangents
+    return _sum_leading(planes), tuple(jnp.sum(t, axis=0) for t in dplanes)
 
 
 def _gradient_planes(obs, X: tuple, a, D, clamp, form: str) -> tuple:
@@ -650,7 +663,8 @@ def _gradient_planes_jvp(form, primals, tangents):
     V = tuple(jnp.zeros(t.shape, t.dtype) if is_zero(t) else t for t in t_X)
     zeros = tuple(jnp.zeros_like(X[0]) for _ in range(6))
     both = _fold_families(obs, zeros, lambda kind, *sl: (
-        _slot_gradient(kind, *sl, X, a, D, form, clamp) + _slot_tangent(kind, *sl, X, V, a, D, form, clamp)))
+        _slot_gradient(kind, *sl, X, a, D, form, clamp) + _slot_tangent(kind, *sl, X, V, a, D, form, clamp)),
+        n_linear=3)
     return both[:3], both[3:]
 
 
