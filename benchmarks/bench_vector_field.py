@@ -10,7 +10,7 @@ each study controller with ``jit(vmap)`` at batch 20 (the study: one case's seed
 
 ``--case NAME`` (e.g. ``warehouse``) takes the obstacles of that generated case instead (seed 1,
 compacted, laid out for each batch size as the simulator lays them out: the warehouse's boxes in
-groups, ``_obstacles.auto_slots_per_step``), and times the closed loop only. For the figures of the
+groups, ``_sim.obstacle_layout``), and times the closed loop only. For the figures of the
 study's workers run it on one core: ``taskset -c 0`` with the study's ``XLA_FLAGS``
 (``redman_jax._study.WORKER_XLA_FLAGS``).
 
@@ -67,14 +67,13 @@ def main():
     for B in (int(b) for b in args.batches.split(",")):
         Q = jnp.asarray(rng.uniform(-1, 1, (B, n)))
         QD = jnp.asarray(rng.uniform(-1, 1, (B, n)))
-        env = make_environment(obs, jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0, 0, 0]), 20)
-        if args.case is not None:  # the simulator's layout at this batch size (_sim._with_layout)
-            from redman_jax._obstacles import (auto_slots_per_step, pad_to_layout, used_bound,
-                                               with_slots_per_step, with_used)
+        o = obs
+        if args.case is not None:  # the simulator's layout at this batch size, its used-slot bound
+            from redman_jax._obstacles import used_bound, with_used
 
-            o = pad_to_layout(with_slots_per_step(obs, auto_slots_per_step(B, n * arm.points_per_link)))
-            env = make_environment(with_used(o, used_bound(o)), jnp.array([0.3, 0.2, 0.8]),
-                                   jnp.array([1.0, 0, 0, 0]), 20)
+            o = _sim.obstacle_layout(arm, obs, _sim.SimParams(), B)
+            o = with_used(o, used_bound(o))
+        env = make_environment(o, jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0, 0, 0]), 20)
         if args.case is None:  # the two obstacle passes alone (random scene)
             pois = lambda q: poi_positions_from(arm, kinematics(arm, q), q)  # noqa: E731
             ref_d = timed(lambda q: jax.vmap(lambda x: jnp.min(rj.obstacle_distances(obs, x)))(pois(q)), B, Q)

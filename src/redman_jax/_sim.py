@@ -880,18 +880,23 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
 
 
 def _with_layout(arm: Arm, scenario: Scenario, params: SimParams, batch: int) -> Scenario:
-    """``scenario`` with its obstacles' work layout set from ``params.slots_per_step`` (None: from
-    the batch size and the arm's points of interest), each family padded to the capacity that its
-    slot groups fill (:func:`~redman_jax._obstacles.pad_to_layout`: once here, not at every
-    vector-field evaluation; 9-DOF warehouse, 97 box slots, velocity OSC, 20 seeds: 62 -> 58 s
-    median of 4, bit-identical runs)."""
+    """``scenario`` with its obstacles laid out for ``batch`` members (:func:`obstacle_layout`)."""
+    return eqx.tree_at(lambda sc: sc.obstacles, scenario,
+                       obstacle_layout(arm, scenario.obstacles, params, batch))
+
+
+def obstacle_layout(arm: Arm, obstacles, params: SimParams, batch: int):
+    """``obstacles`` with the work layout set from ``params.slots_per_step`` (None: from the batch
+    size and the arm's points of interest), each family padded to the capacity that its slot groups
+    fill (:func:`~redman_jax._obstacles.pad_to_layout`: once here, not at every vector-field
+    evaluation; 9-DOF warehouse, 97 box slots, velocity OSC, 20 seeds: 62 -> 58 s median of 4,
+    bit-identical runs)."""
     from ._obstacles import auto_slots_per_step, pad_to_layout, with_slots_per_step
 
     s = params.slots_per_step
     if s is None:
         s = auto_slots_per_step(batch, arm.n_dof * arm.points_per_link)
-    obs = pad_to_layout(with_slots_per_step(scenario.obstacles, s))
-    return eqx.tree_at(lambda sc: sc.obstacles, scenario, obs)
+    return pad_to_layout(with_slots_per_step(obstacles, s))
 
 
 def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains, ik=None,
