@@ -40,8 +40,12 @@ What is compared, per case and controller (scenarios and IK joint references fro
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
 vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (n - 1)`` per member for the
 FSAL Dopri5 restarted after each of the run's ``n - 1`` jumps, ``n`` its valid samples; a counting
-callback, ``--exact-evals``, finds about 1 % more; SciPy: counted), and the speed-up of JAX (20
-seeds in one call) over SciPy (one seed at a time) per simulated second.
+callback, ``--exact-evals``, finds about 1 % more; SciPy: counted), the share of the JAX loop's
+iterations that step a member still running (``use``, :func:`batch_use`; a chunk of the batch
+iterates until its slowest member is done, so a case whose runs differ in length, such as simple
+with 640 to 1877 samples, wastes up to half of them; not given for gradient-guided runs, whose
+stragglers move to a smaller batch), and the speed-up of JAX (20 seeds in one call) over SciPy (one
+seed at a time) per simulated second.
 """
 
 from __future__ import annotations
@@ -529,6 +533,20 @@ def jax_evals(res, N, uses_guidance, params):
     return 6 * steps + np.asarray(res.n_samples, float)
 
 
+def batch_use(steps, chunks: int) -> float:
+    """The share of the vmapped loop iterations that step a member still running: ``sum(steps) /
+    sum over chunks (rows x the chunk's largest step count)``, the chunks as ``simulate_batch``
+    splits the batch over threads (contiguous rows, the last padded with copies of its last
+    member). Under ``vmap`` a chunk iterates until its slowest member is done, every row each
+    time, so 1 - this is the work spent on members that have finished."""
+    steps = np.asarray(steps, float)
+    R = steps.size
+    size = -(-R // chunks)
+    paid = sum(size * steps[np.minimum(np.arange(i * size, (i + 1) * size), R - 1)].max()
+               for i in range(chunks))
+    return float(steps.sum() / paid)
+
+
 def count_evals(arm, sc, ctrl, gains, params, ik=None):
     """Exact vector-field evaluations of one run (a host callback counts the controller calls)."""
     counter = [0]
@@ -623,7 +641,7 @@ def main(argv=None):
     na = NumpyArm(arm)
     seeds = list(range(1, args.seeds + 1))
     head = (f"{'case':<12} {'controller':<13} {'sim s':>6} {'JAX cold s':>10} {'cold sim-s/s':>12} "
-            f"{'warm s':>7} {'warm sim-s/s':>12} {'JAX evals/sim-s':>15} {'ok':>5} | {'SciPy sim-s/s':>13} "
+            f"{'warm s':>7} {'warm sim-s/s':>12} {'JAX evals/sim-s':>15} {'use':>4} {'ok':>5} | {'SciPy sim-s/s':>13} "
             f"{'SciPy evals/sim-s':>17} {'max|dq|':>8} | {'x warm':>7} {'x cold':>7}")
     rows = []
     for case in args.cases:
@@ -649,7 +667,7 @@ def main(argv=None):
             jax_eps = float(np.mean(evals / T_member))
             ok = f"{int(np.asarray(res.success).sum())}/{len(seeds)}"
             row = dict(case=case, ctrl=name, T=T, cold=cold, warm=warm, jax_cold=T / cold, jax_warm=T / warm,
-                       jax_eps=jax_eps, ok=ok)
+                       jax_eps=jax_eps, ok=ok, use=None if gradient else batch_use(res.n_steps, chunks))
             if args.exact_evals:
                 c = CONTROLLERS[name]()
                 exact, st = count_evals(arm, _take(scen, 0), c, c.default_gains(), params,
@@ -679,7 +697,7 @@ def main(argv=None):
     print(f"\n{head}")
     for r in rows:
         line = (f"{r['case']:<12} {r['ctrl']:<13} {r['T']:6.1f} {r['cold']:10.1f} {r['jax_cold']:12.2f} "
-                f"{r['warm']:7.2f} {r['jax_warm']:12.2f} {r['jax_eps']:15.0f} {r['ok']:>5} | ")
+                f"{r['warm']:7.2f} {r['jax_warm']:12.2f} {r['jax_eps']:15.0f} {'–' if r['use'] is None else format(r['use'], '4.2f'):>4} {r['ok']:>5} | ")
         if "np_rate" in r:
             line += (f"{r['np_rate']:13.4f} {r['np_eps']:17.0f} {r['dq']:8.1e} | {_x(r['x_warm']):>7} "
                      f"{_x(r['x_cold']):>7}")
@@ -695,6 +713,8 @@ def main(argv=None):
             print(f"(SciPy timed on the first {K} samples = {K * ts:g} s of {min(args.scipy_seeds, args.seeds)} "
                   f"seed(s) and extrapolated per simulated second; max|dq| = largest |q_numpy - q_jax| [rad or m] at "
                   f"the timed sample ends)")
+    print("use = share of the vmapped loop's iterations that step a member still running (batch_use: each "
+          "thread's chunk iterates until its slowest member is done)")
 
 
 if __name__ == "__main__":

@@ -152,3 +152,27 @@ def test_controller_and_closed_loop_match_jax(scenes, name):
     assert worst_dz < RTOL, worst_dz
     assert worst_f < RTOL, worst_f
     assert loop.outside  # the state beyond the limits was seen by the latched flag
+
+
+def test_batch_use_counts_the_iterations_of_each_chunk():
+    """``bench_sim.batch_use``: steps over the row-iterations the chunks pay (each iterates to its
+    slowest member; the last chunk padded with copies of its last member), against a count of
+    the loop's iterations row by row."""
+    def counted(steps, chunks):
+        size = -(-len(steps) // chunks)
+        busy = paid = 0
+        for i in range(chunks):
+            rows = [steps[min(j, len(steps) - 1)] for j in range(i * size, (i + 1) * size)]
+            for it in range(max(rows)):
+                paid += len(rows)
+                busy += sum(it < s for s in rows[: len(steps) - i * size])  # padded copies are not runs
+        return busy / paid
+
+    assert B.batch_use([5, 5, 5, 5], 2) == 1.0
+    assert B.batch_use([1, 2, 3, 4], 2) == pytest.approx(10 / 12)
+    assert B.batch_use([1, 2, 3], 2) == pytest.approx(6 / 10)  # rows (1, 2) and (3, copy of 3)
+    rng = np.random.default_rng(0)
+    for chunks in (1, 2, 3):
+        for R in (3, 7, 20):
+            steps = list(rng.integers(1, 40, R))
+            assert B.batch_use(steps, chunks) == pytest.approx(counted(steps, chunks))
