@@ -176,6 +176,27 @@ def _config(out):
                        controllers=("velocity", "gradient"), figures=False, progress=False)
 
 
+def test_report_renders_in_a_process_with_the_workers_flags(monkeypatch, tmp_path):
+    """``render_report`` (the sweep's figures and report, ``redman-jax plot``): on a CPU backend in
+    a spawned process whose ``XLA_FLAGS`` add the workers' flags (this process's are unchanged);
+    an error there is raised here."""
+    import _fake_units
+
+    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts, render_report
+
+    tests_dir = os.path.dirname(os.path.abspath(__file__))
+    monkeypatch.setenv("PYTHONPATH", tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    before = os.environ.get("XLA_FLAGS", "")
+    render_report(tmp_path, make=_fake_units.report_probe)
+    pid, flags = (tmp_path / "probe.txt").read_text().split("\n")
+    assert int(pid) != os.getpid() and os.environ.get("XLA_FLAGS", "") == before
+    want = _with_flags(before, WORKER_XLA_FLAGS)
+    assert flags == (want if _xla_accepts(want) else before)
+    (tmp_path / "fail").touch()
+    with pytest.raises(RuntimeError, match="the report failed"):
+        render_report(tmp_path, make=_fake_units.report_probe)
+
+
 def test_resume_after_interruption_equals_uninterrupted(monkeypatch, tmp_path):
     calls = []
     _fake_pipeline(monkeypatch, calls)

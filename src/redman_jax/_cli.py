@@ -151,9 +151,9 @@ def main(argv=None) -> int:
             cfg = SweepConfig.from_args(args, study=(command == "study"))
             run_sweep(cfg)
         elif command == "plot":
-            from ._report import make_report
+            from ._study import render_report
 
-            make_report(args.out)
+            render_report(args.out)
         elif command == "tune":
             from ._tuning import tune_cli
 

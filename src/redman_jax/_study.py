@@ -463,9 +463,33 @@ def _write_results(cfg: SweepConfig, out: Path, store: UnitStore) -> None:
     if cfg.progress:
         print(timing_summary(timing), flush=True)
     if cfg.figures:
-        from ._report import make_report
+        render_report(out)
 
-        make_report(out)
+
+def render_report(out, make=None) -> None:
+    """Write the figures and ``report.md`` of the results folder ``out``
+    (:func:`~redman_jax._report.make_report`, or ``make(out)``, a picklable callable).
+
+    On a CPU backend in a spawned process started with the workers' XLA flags
+    (:data:`WORKER_XLA_FLAGS`), which compile faster: the report's figures rebuild scenes and
+    re-simulate, compiling several programs. ``redman-jax plot`` on the results folder of a
+    9-DOF sweep of the three tracking controllers (2 idle cores, two runs each, alternating):
+    36.8 and 37.0 s so, 47.6 and 48.6 s with ``make_report`` in the calling process and JAX's own
+    flags; the same ``report.md``. The rows, the table and the traces are written before and do
+    not change; the figures can differ from an in-process report by rounding. Elsewhere (an
+    accelerator, whose memory a second process would claim too) in this process."""
+    import jax
+
+    if make is None:
+        from ._report import make_report as make
+    if jax.default_backend() != "cpu":
+        make(out)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with _worker_xla_flags(), ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        pool.submit(make, out).result()  # re-raises the report's error here
 
 
 def _worker_cores(jobs: int) -> list[int]:
@@ -582,6 +606,12 @@ def _one_core_while_spawning(core):
 # acceleration 57.6 against 67.1; all 18 units 597 against 686. The compile time is the emitters'
 # (9-DOF velocity OSC, simple case, one core: 7.9 s with both flags, 8.1 s with the emitters off
 # alone, 16.7 s with YNNPACK's fusions off alone).
+# Measured and left off: --xla_cpu_multi_thread_eigen=false (each dot on the calling thread instead
+# of Eigen's pool). At batch 10 on one core it makes the joint-space vector field 8-15 % cheaper,
+# at batch 20 no different; on the 9-DOF sweep of the three tracking controllers (5 builds + 15
+# simulations, these two workers, idle machine, one run each) units 353.0 -> 361.2 s, of which
+# running 212.4 -> 207.3 s, wall 206 -> 212 s: no gain. And its dots round differently: the IK
+# validation kept other retry seeds for 5 of the 100 scenes and 6 of the 300 runs changed success.
 WORKER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
 
 
