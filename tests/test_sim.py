@@ -401,6 +401,36 @@ def test_a_solve_out_of_steps_is_flagged_diverged_and_nothing_else(free):
     assert np.isnan(float(m.mean_pos_err)) and float(m.final_pos_err) == np.inf
 
 
+def test_a_contact_seen_only_at_a_negative_stage_weight_is_still_a_contact():
+    """The flags are integrated like the state: one Dopri5 step sums its stages with the weights
+    b = (35/384, 0, 500/1113, 125/192, -2187/6784, 11/84, 0). A contact indicator that is 1 only
+    around the fifth stage's time (c = 8/9) leaves the flag at -2187/6784 after the step; the run's
+    flags are read by absolute value (``_final_flags``), so it still counts as a contact, while no
+    contact at all leaves exactly 0."""
+    import diffrax
+
+    from redman_jax._sim import _final_flags
+
+    def flag_after_one_step(window):
+        def vf(t, y, args):
+            inside = (t > window[0]) & (t < window[1])
+            return jnp.stack([inside, jnp.zeros_like(inside)]).astype(y.dtype)
+
+        sol = diffrax.diffeqsolve(diffrax.ODETerm(vf), diffrax.Dopri5(), 0.0, 1.0, 1.0, jnp.zeros(2),
+                                  saveat=diffrax.SaveAt(ts=jnp.array([0.0, 1.0])))
+        return sol.ys  # rows (t = 0, t = 1), columns (obstacle, joint limit)
+
+    ys = flag_after_one_step((8 / 9 - 0.01, 8 / 9 + 0.01))
+    assert float(ys[1, 0]) == pytest.approx(-2187 / 6784, rel=1e-12)
+    f = jnp.concatenate([ys, jnp.zeros((2, 1))], axis=1)
+    rows = jnp.array([True, True])
+    flags = _final_flags(f, rows)
+    assert float(flags[0]) > 0 and float(flags[1]) == 0.0
+    assert float(jnp.max(f[:, 0])) == 0.0  # what the largest value alone reported
+    quiet = jnp.concatenate([flag_after_one_step((2.0, 3.0)), jnp.zeros((2, 1))], axis=1)
+    assert float(_final_flags(quiet, rows)[0]) == 0.0
+
+
 def test_gradients_match_finite_differences(free):
     """d(tracking loss)/d(gains, q0) by the RecursiveCheckpointAdjoint against central finite
     differences of the same simulator. Tight tolerances (1e-10) make the discrete solution a smooth
