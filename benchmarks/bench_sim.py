@@ -536,14 +536,13 @@ def jax_evals(res, N, uses_guidance, params):
 def batch_use(steps, chunks: int) -> float:
     """The share of the vmapped loop iterations that step a member still running: ``sum(steps) /
     sum over chunks (rows x the chunk's largest step count)``, the chunks as ``simulate_batch``
-    splits the batch over threads (contiguous rows, the last padded with copies of its last
-    member). Under ``vmap`` a chunk iterates until its slowest member is done, every row each
-    time, so 1 - this is the work spent on members that have finished."""
+    splits the batch over threads (``_sim._chunk_rows``: contiguous rows, the last padded with
+    copies of its last member). Under ``vmap`` a chunk iterates until its slowest member is done,
+    every row each time, so 1 - this is the work spent on members that have finished."""
+    from redman_jax._sim import _chunk_rows
+
     steps = np.asarray(steps, float)
-    R = steps.size
-    size = -(-R // chunks)
-    paid = sum(size * steps[np.minimum(np.arange(i * size, (i + 1) * size), R - 1)].max()
-               for i in range(chunks))
+    paid = sum(rows.size * steps[rows].max() for rows in _chunk_rows(steps.size, chunks))
     return float(steps.sum() / paid)
 
 

@@ -1103,8 +1103,7 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
                                  gains_axis, q0_axis)
     from concurrent.futures import ThreadPoolExecutor
 
-    size = -(-R // k)
-    rows = [np.minimum(np.arange(i * size, (i + 1) * size), R - 1) for i in range(k)]
+    rows = _chunk_rows(R, k)
     take = lambda tree, idx, batched=True: (  # noqa: E731
         jax.tree.map(lambda x: x[idx], tree) if batched and tree is not None else tree)
     with ThreadPoolExecutor(max_workers=k, thread_name_prefix="redman-sim") as pool:
@@ -1117,6 +1116,13 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
 
 
 _MIN_CHUNK = 8  # members per thread of simulate_batch, at least (below, dispatch costs dominate)
+
+
+def _chunk_rows(R: int, k: int) -> list:
+    """The rows of each of the ``k`` chunks :func:`simulate_batch` splits a batch of ``R`` into:
+    contiguous, equal in size, the last padded with copies of row ``R - 1``."""
+    size = -(-R // k)
+    return [np.minimum(np.arange(i * size, (i + 1) * size), R - 1) for i in range(k)]
 
 
 def _chunks(threads, R: int, tree) -> int:
