@@ -401,7 +401,7 @@ def test_a_solve_out_of_steps_is_flagged_diverged_and_nothing_else(free):
     assert np.isnan(float(m.mean_pos_err)) and float(m.final_pos_err) == np.inf
 
 
-def test_a_contact_seen_only_at_a_negative_stage_weight_is_still_a_contact():
+def test_a_contact_or_divergence_seen_only_at_a_negative_stage_weight_still_counts():
     """The flags are integrated like the state: one Dopri5 step sums its stages with the weights
     b = (35/384, 0, 500/1113, 125/192, -2187/6784, 11/84, 0). A contact indicator that is 1 only
     around the fifth stage's time (c = 8/9) leaves the flag at -2187/6784 after the step; the run's
@@ -409,7 +409,7 @@ def test_a_contact_seen_only_at_a_negative_stage_weight_is_still_a_contact():
     contact at all leaves exactly 0."""
     import diffrax
 
-    from redman_jax._sim import _final_flags
+    from redman_jax._sim import _Y, _diverged, _final_flags
 
     def flag_after_one_step(window):
         def vf(t, y, args):
@@ -429,6 +429,13 @@ def test_a_contact_seen_only_at_a_negative_stage_weight_is_still_a_contact():
     assert float(jnp.max(f[:, 0])) == 0.0  # what the largest value alone reported
     quiet = jnp.concatenate([flag_after_one_step((2.0, 3.0)), jnp.zeros((2, 1))], axis=1)
     assert float(_final_flags(quiet, rows)[0]) == 0.0
+    # the divergence flag (column 2) is read the same way: a stage out of bounds seen only at the
+    # negative weight is a divergence; no such stage is none
+    q = jnp.zeros((2, 3))
+    seen = _Y(q=q, qd=q, z=jnp.zeros((2, 0)), f=jnp.concatenate([jnp.zeros((2, 2)), ys[:, :1]], axis=1))
+    assert bool(_diverged(seen, jnp.int32(0), rows))
+    none = _Y(q=q, qd=q, z=jnp.zeros((2, 0)), f=jnp.zeros((2, 3)))
+    assert not bool(_diverged(none, jnp.int32(0), rows))
 
 
 def test_gradients_match_finite_differences(free):

@@ -713,12 +713,14 @@ def _initial_state(arm, controller, q0, qd0, dtype):
 
 
 def _diverged(ys: _Y, status, rows=None):
-    """The run diverged: its divergence flag grew, a state is not finite or the solver stopped
-    (``status``). ``rows`` ``(N,)``: count only these saved rows (default all; a guided run up to
-    its stop)."""
+    """The run diverged: its divergence flag is nonzero, a state is not finite or the solver
+    stopped (``status``). ``rows`` ``(N,)``: count only these saved rows (default all; a guided run
+    up to its stop). The flag is read by absolute value, as the others (``_final_flags``): a stage
+    out of bounds that only a negative Runge-Kutta weight sees leaves it below zero."""
     rows = jnp.ones(ys.q.shape[0], bool) if rows is None else rows
     finite = jnp.all(jnp.where(rows[:, None], jnp.isfinite(ys.q) & jnp.isfinite(ys.qd), True))
-    flag = jnp.max(jnp.where(rows, ys.f[:, 2], 0.0)) > 0  # NaN never compares > 0: caught by finite
+    # NaN never compares > 0: caught by finite
+    flag = jnp.max(jnp.where(rows, jnp.abs(ys.f[:, 2]), 0.0)) > 0
     return flag | (~finite) | (status != 0)
 
 
