@@ -10,7 +10,8 @@ left-closed interval ``[k t_s, (k+1) t_s)`` (E29). The ODE state is
 states (thesis 3.5): ``f_obs_dot = 1`` while the smallest point-of-interest signed distance is below
 the link width (0.10 m), ``f_jl_dot = 1`` while a limited joint is outside its limits, and
 ``f_bad_dot = 1`` while the vector field is non-finite or the state exceeds the divergence bounds.
-The flags are excluded from the error norm of the step-size controller (SPEC section 10).
+The flags are excluded from the error norm of the step-size controller (SPEC section 10) and are read
+by absolute value (``_final_flags``, ``_diverged``): a stage weight of the solver can be negative.
 
 **Integration (measured, see ``benchmarks/bench_sim.py``).** Trajectory runs are *one*
 ``diffeqsolve`` over the whole horizon ``[0, N t_s]`` (``mode="horizon"``): the step-size
@@ -241,7 +242,9 @@ class SimResult(eqx.Module):
     Per sample ``k`` (``N`` rows, saved at the sample end ``t_{k+1}``): ``t``, ``q``, ``qd``, ``p``,
     ``quat`` (end-effector pose), ``pos_err`` (against the held sample ``k``; gradient-guided: against
     the goal), ``ori_err`` (``sin(phi/2)``; meaningful where ``rot = 1``), ``min_dist`` (smallest POI
-    signed distance), ``f_obs``, ``f_jl`` (integrated flags), ``rot``, ``mask`` (valid samples; for
+    signed distance), ``f_obs``, ``f_jl`` (integrated flags: nonzero once a solver stage of nonzero
+    weight has been in contact; read them by absolute value, since a Runge-Kutta step's negative
+    stage weight can leave them below zero, see ``_final_flags``), ``rot``, ``mask`` (valid samples; for
     gradient-guided runs, up to the stop).
 
     Per run: ``metrics`` (:class:`~redman_jax._metrics.RunMetrics`), ``n_samples``, ``path_length``
