@@ -486,6 +486,17 @@ def test_bad_input_raises():
         SimParams(mode="bogus")
     with pytest.raises(ValueError, match="SimParams.solver"):
         SimParams(solver="rk4")
+    # the numbers, where concrete: a negative or NaN tolerance, both tolerances zero, a bound that is
+    # not positive (inf: none), a PID coefficient that is not finite
+    for kw, match in [(dict(rtol=-1e-5), "SimParams.rtol"), (dict(atol=float("nan")), "SimParams.atol"),
+                      (dict(rtol=0.0, atol=0.0), "both zero"), (dict(q_bound=0.0), "SimParams.q_bound"),
+                      (dict(qd_bound=float("nan")), "SimParams.qd_bound"),
+                      (dict(goal_radius=-0.1), "SimParams.goal_radius"),
+                      (dict(pcoeff=float("inf")), "SimParams.pcoeff")]:
+        with pytest.raises(ValueError, match=match):
+            SimParams(**kw)
+    SimParams(atol=0.0, q_bound=float("inf"), icoeff=0.0, pcoeff=0.4)  # valid: relative only, no bound
+    jax.jit(lambda r: SimParams(rtol=r).rtol)(jnp.asarray(1e-4))  # traced numbers are the caller's
     with pytest.raises(ValueError, match="scenario.reference.p"):
         simulate_batch(ARM, sc, CTRL, toy_gains("osc"))
     with pytest.raises(ValueError, match="ik.q"):
