@@ -537,3 +537,29 @@ def test_every_controller_runs_under_shard_map():
         want = jax.jit(jax.vmap(tau))(qs, qds, zs, refs)
         got = jax.jit(jax.shard_map(jax.vmap(tau), mesh=mesh, in_specs=spec, out_specs=spec))(qs, qds, zs, refs)
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=1e-9, err_msg=name)
+
+
+def test_a_non_finite_gain_is_an_error_naming_it_when_concrete():
+    """Every gains module (and the null-space policy's and the contact model's numbers) built from
+    concrete numbers refuses a NaN or an infinity, naming the field, rather than simulating NaN;
+    built under ``jit`` / ``vmap`` / ``grad`` (a tuner's, a sweep's) it is not checked, and
+    ``jax.tree.map`` over a gains pytree (an optimiser's update) never runs the check."""
+    from redman_jax._controllers import CONTROLLERS
+    from redman_jax._nullspace import PolicyGains
+
+    for name, cls in CONTROLLERS.items():
+        gains_type = type(cls().default_gains())
+        field = next(f.name for f in __import__("dataclasses").fields(gains_type) if f.name != "policy")
+        with pytest.raises(ValueError, match=f"{gains_type.__name__}.{field}: expected finite"):
+            gains_type(**{field: float("nan")})
+        gains_type(**{field: -1.0})  # negative: an unusual choice, not an error
+    with pytest.raises(ValueError, match="PolicyGains.gamma"):
+        PolicyGains(gamma=float("inf"))
+    with pytest.raises(ValueError, match="LimitContact.k_d"):
+        rj.LimitContact(k_d=float("nan"))
+    G = type(CONTROLLERS["velocity"]().default_gains())
+    assert float(jax.jit(lambda k: G(kp=k).kp)(jnp.asarray(3.0))) == 3.0
+    assert np.asarray(jax.vmap(lambda k: G(kp=k).kp)(jnp.arange(3.0))).tolist() == [0.0, 1.0, 2.0]
+    assert float(jax.grad(lambda k: 2 * G(kp=k).kp)(1.0)) == 2.0
+    nan = jax.tree.map(lambda x: x * jnp.nan, G())
+    assert np.isnan(np.asarray(nan.kp))

@@ -245,3 +245,30 @@ def test_float32_smoke():
     fd64 = np.asarray(forward_dynamics(arm64, *(np.asarray(x, np.float64) for x in (q, qd, tau))))
     # float32: M's condition number ~1e3 times eps 1e-7
     np.testing.assert_allclose(fd32, fd64, rtol=1e-3, atol=1e-3 * np.abs(fd64).max())
+
+
+def test_a_joint_vector_of_the_wrong_length_is_an_error_naming_it():
+    """A state or torque of another length than the arm's joints would be read past its end (JAX
+    clamps indices) or broadcast, giving numbers for a configuration nobody asked for; every public
+    entry point names the argument instead, also under ``vmap`` (per member) and ``jit``."""
+    from redman_jax._kinematics import jacobian, jdot_qdot
+
+    arm = thesis_arm(7)
+    z7, z6 = jnp.zeros(7), jnp.zeros(6)
+    cases = [
+        ("kinematics: q", lambda: kinematics(arm, z6)),
+        ("kinematics: q", lambda: jax.vmap(lambda q: jacobian(arm, q))(jnp.zeros((3, 6)))),
+        ("kinematics: q", lambda: jax.jit(lambda q: mass_matrix(arm, q))(jnp.zeros(8))),
+        ("rnea: qd", lambda: rnea(arm, z7, z6, z7)),
+        ("rnea: qdd", lambda: rnea(arm, z7, z7, jnp.zeros(9))),
+        ("forward_dynamics: tau", lambda: forward_dynamics(arm, z7, z7, z6)),
+        ("joint_limit_torque: qd", lambda: joint_limit_torque(arm, z7, z6)),
+        ("jdot_qdot: qd", lambda: jdot_qdot(arm, z7, z6)),
+        ("state_derivative: x", lambda: state_derivative(arm, jnp.zeros(13), z7)),
+    ]
+    for match, call in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    # the right length passes, batched too
+    assert jax.vmap(lambda q: jacobian(arm, q))(jnp.zeros((3, 7))).shape == (3, 6, 7)
+    assert forward_dynamics(arm, z7, z7, z7).shape == (7,)

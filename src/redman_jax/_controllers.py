@@ -67,7 +67,7 @@ from jaxtyping import Array, Float
 from ._control_types import AbstractController, ControlOutput, ControlState, Environment, RefSample
 from ._dynamics import dynamics_terms, prefix_sum, rnea
 from ._kinematics import Kinematics, jacobian_from, kinematics, poi_positions_from
-from ._math import as_float, clip_norm, quat_error, quat_mul, rot_to_quat
+from ._math import as_float, check_finite_fields, clip_norm, quat_error, quat_mul, rot_to_quat
 from ._nullspace import (
     PolicyGains,
     damped_solve,
@@ -114,7 +114,14 @@ def _f(default):
 # ----------------------------------------------------------------------------------------------
 
 
-class JointSpaceGains(eqx.Module):
+class _Gains(eqx.Module):
+    """Gains built with concrete numbers are checked to be finite (a NaN gain is a NaN run)."""
+
+    def __check_init__(self):
+        check_finite_fields(self)
+
+
+class JointSpaceGains(_Gains):
     """Inverse-dynamics gains (3.3.2 [T]): ``kp`` 1000, ``kd`` 100 (error poles -11.3, -88.7).
     ``policy`` is used only with ``nullspace="actuator"``."""
 
@@ -123,7 +130,7 @@ class JointSpaceGains(eqx.Module):
     policy: PolicyGains = eqx.field(default_factory=PolicyGains)
 
 
-class PIDGains(eqx.Module):
+class PIDGains(_Gains):
     """PID gains (2.4; SPEC proposal 1000 / 100 / 0)."""
 
     kp: Float[Array, ""] = _f(1000.0)
@@ -132,7 +139,7 @@ class PIDGains(eqx.Module):
     policy: PolicyGains = eqx.field(default_factory=PolicyGains)
 
 
-class VelocityGains(eqx.Module):
+class VelocityGains(_Gains):
     """Velocity OSC gains (3.3.2 [T]): ``kp`` 10, ``kpr`` 40, ``kpq`` 10, ``kdq`` 100; Jacobian scaling
     ``s_trans`` 1, ``s_rot`` 0.2 (3.13); orientation clip 0.075 (3.15); null-space ``policy``."""
 
@@ -146,7 +153,7 @@ class VelocityGains(eqx.Module):
     policy: PolicyGains = eqx.field(default_factory=PolicyGains)
 
 
-class AccelerationGains(eqx.Module):
+class AccelerationGains(_Gains):
     """Acceleration OSC gains (3.3.2 [T]): ``kp`` 250, ``kpr`` 2000, ``kd`` 31, ``kdr`` 100; scaling,
     clip and null-space ``policy`` as :class:`VelocityGains`."""
 
@@ -160,7 +167,7 @@ class AccelerationGains(eqx.Module):
     policy: PolicyGains = eqx.field(default_factory=PolicyGains)
 
 
-class ImpedanceGains(eqx.Module):
+class ImpedanceGains(_Gains):
     """Impedance gains (2.18; SPEC proposal ``kp`` 2000 N/m, ``kd`` 200 Ns/m; rotational ``kpr`` 200,
     ``kdr`` 20 are our proposal). ``s_trans``/``s_rot`` scale the Jacobian of the null-space
     projector only (the force map ``J^T F`` uses the physical Jacobian)."""
@@ -181,7 +188,7 @@ def _default_field():
     return FieldParams()
 
 
-class GradientGains(eqx.Module):
+class GradientGains(_Gains):
     """Gradient-guided gains (3.28; U22: ``kd`` 31, ``kdr`` 100, ``kpr`` 2000), guidance magnitude
     ``guide_a`` 0.5 m/s and ``guide_b`` 0.1 m (3.19 [T]), the guidance ``field``
     (:class:`~redman_jax._fields.FieldParams`), scaling, clip and null-space ``policy``."""

@@ -43,8 +43,8 @@ import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve
 from jaxtyping import Array, Float
 
-from ._kinematics import Kinematics, kinematics
-from ._math import ad, as_float, skew
+from ._kinematics import Kinematics, joint_vector, kinematics
+from ._math import ad, as_float, check_finite_fields, skew
 from ._robot import Arm
 
 __all__ = [
@@ -186,6 +186,7 @@ def rnea(arm: Arm, q, qd, qdd, *, gravity: bool = True, kin: Kinematics | None =
     ``tau_j = S_j . sum_{i>=j} F_i``; with ``(n, f) = G V``, ``-ad_V^T (n, f) = (w x n + v x f, w x f)``.
     ``gravity=False`` drops ``a_0``.
     """
+    qd, qdd = joint_vector(arm, qd, "qd", "rnea"), joint_vector(arm, qdd, "qdd", "rnea")
     if kin is None:
         kin = kinematics(arm, q)
     m, h, Io = _compact_inertias(arm, kin) if body is None else body
@@ -276,6 +277,9 @@ class LimitContact(eqx.Module):
     k_d: Float[Array, ""] = eqx.field(default=100.0, converter=as_float)
     steepness: Float[Array, ""] = eqx.field(default=50.0, converter=as_float)
 
+    def __check_init__(self):
+        check_finite_fields(self)
+
 
 def joint_limit_torque(arm: Arm, q, qd, contact: LimitContact | None = None) -> Float[Array, " n"]:
     """Restoring contact torque ``tau_lim`` of eq. 3.6 (subtracted in the plant, E8).
@@ -284,6 +288,7 @@ def joint_limit_torque(arm: Arm, q, qd, contact: LimitContact | None = None) -> 
     below ``q_min``: ``k_p (q - q_min) + [q_d < 0] k_d q_d s``; above ``q_max``:
     ``k_p (q - q_max) + [q_d > 0] k_d q_d s``; zero inside and on joints without limits (E18).
     """
+    q, qd = joint_vector(arm, q, "q", "joint_limit_torque"), joint_vector(arm, qd, "qd", "joint_limit_torque")
     c = LimitContact() if contact is None else contact
     s = 1.0 - 1.0 / jnp.sqrt(1.0 + (c.steepness * qd) ** 2)
     damp = c.k_d * qd * s
@@ -299,6 +304,7 @@ def forward_dynamics(arm: Arm, q, qd, tau, contact: LimitContact | None = None, 
 
     ``limits=False`` drops the joint-limit contact torque.
     """
+    tau = joint_vector(arm, tau, "tau", "forward_dynamics")
     M, h = dynamics_terms(arm, q, qd)
     rhs = tau - h
     if limits:
@@ -335,6 +341,7 @@ def cholesky_solve(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array
 def _forward_dynamics_lapack(arm: Arm, q, qd, tau, contact: LimitContact | None = None, *,
                              limits: bool = True):
     """:func:`forward_dynamics` with ``jax.scipy.linalg.cho_solve`` (test reference, benchmark "before")."""
+    tau = joint_vector(arm, tau, "tau", "forward_dynamics")
     M, h = dynamics_terms(arm, q, qd)
     rhs = tau - h
     if limits:
@@ -346,5 +353,9 @@ def state_derivative(arm: Arm, x: Float[Array, " 2n"], tau, contact: LimitContac
                      ) -> Float[Array, " 2n"]:
     """Plant of eq. 3.7 (corrected): ``d/dt [q; q_d] = [q_d; M^-1(tau - tau_lim - c - g)]``."""
     n = arm.n_dof
+    x = jnp.asarray(x)
+    if x.shape != (2 * n,):
+        raise ValueError(f"state_derivative: x = [q; qd] must have shape ({2 * n},) for this {n}-DOF arm, "
+                         f"got {x.shape}")
     q, qd = x[:n], x[n:]
     return jnp.concatenate([qd, forward_dynamics(arm, q, qd, tau, contact)])

@@ -49,6 +49,17 @@ class Kinematics(eqx.Module):
     S: Float[Array, "n 6"]
 
 
+def joint_vector(arm: Arm, x, name: str, where: str):
+    """``x`` as an array, checked to be one value per joint, ``(n,)``: a vector of another length
+    would be read past its end (JAX clamps the index) or broadcast, never an error. The shape is
+    static, so the check costs nothing under ``jit`` or ``vmap`` (per member)."""
+    x = jnp.asarray(x)
+    if x.shape != (arm.n_dof,):
+        raise ValueError(f"{where}: {name} must have shape ({arm.n_dof},) for this {arm.n_dof}-DOF arm, "
+                         f"got {x.shape}")
+    return x
+
+
 def kinematics(arm: Arm, q: Float[Array, " n"]) -> Kinematics:
     """One forward pass: link frames, end-effector frame and spatial Jacobian columns.
 
@@ -60,7 +71,7 @@ def kinematics(arm: Arm, q: Float[Array, " n"]) -> Kinematics:
     products of 4x4 exponentials this pass is 2.2x cheaper per state at batch 1024 (9-DOF arm,
     2-core CPU); the tests check it against ``scipy.linalg.expm`` products.
     """
-    q = jnp.asarray(q)
+    q = joint_vector(arm, q, "q", "kinematics")
     dtype = jnp.result_type(q.dtype, arm.screw_axes.dtype)
     eye = jnp.eye(3, dtype=dtype)
     R, p = eye, jnp.zeros(3, dtype)
@@ -211,5 +222,6 @@ def poi_jacobians(arm: Arm, q) -> Float[Array, "m 3 n"]:
 
 def jdot_qdot(arm: Arm, q, qd) -> Float[Array, "6"]:
     """``J_dot(q, q_dot) q_dot`` of the end-effector Jacobian (thesis 3.17), by a forward-mode jvp."""
+    q, qd = joint_vector(arm, q, "q", "jdot_qdot"), joint_vector(arm, qd, "qd", "jdot_qdot")
     _, Jdot = jax.jvp(lambda qq: jacobian(arm, qq), (q,), (qd,))
     return Jdot @ qd

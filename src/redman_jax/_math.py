@@ -6,7 +6,11 @@ the identity (the double-``where`` trick guards the square roots).
 
 from __future__ import annotations
 
+import dataclasses
+
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 __all__ = [
@@ -164,3 +168,19 @@ def as_float(x):
     if jnp.issubdtype(x.dtype, jnp.bool_):
         return x
     return x.astype(jnp.result_type(float))
+
+
+def check_finite_fields(module) -> None:
+    """Raise ``ValueError`` naming the field if a concrete floating-point array field of ``module``
+    (gains, contact parameters) holds a NaN or an infinity: every run with it would be NaN.
+    Traced fields (a module built inside ``jit`` / ``vmap`` / ``grad``), sub-modules (they check
+    themselves) and arrays this process cannot read whole are skipped."""
+    for f in dataclasses.fields(module):
+        v = getattr(module, f.name)
+        if isinstance(v, jax.core.Tracer) or not isinstance(v, (jax.Array, np.ndarray)):
+            continue
+        if not getattr(v, "is_fully_addressable", True):
+            continue
+        a = np.asarray(v)
+        if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{type(module).__name__}.{f.name}: expected finite values, got {a}")

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._math import as_float
+from ._math import as_float, check_finite_fields
 from jaxtyping import Array, Bool, Float
 
 from ._kinematics import Kinematics, poi_jacobians_from, poi_link_index, poi_positions_from
@@ -103,6 +103,9 @@ class PolicyGains(eqx.Module):
     jl_a: Float[Array, ""] = eqx.field(default=100.0, converter=_arr)
     jl_outside: Float[Array, ""] = eqx.field(default=5000.0, converter=_arr)
     damping: Float[Array, ""] = eqx.field(default=800.0, converter=_arr)
+
+    def __check_init__(self):
+        check_finite_fields(self)
 
 
 def ik_policy_gains() -> PolicyGains:
