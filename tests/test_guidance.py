@@ -181,3 +181,19 @@ def test_goal_field_minimum_without_obstacles_is_the_goal():
     goal = jnp.asarray([0.3, 0.1, 0.5])
     x, shift, _ = goal_field_minimum(goal, obs)
     assert float(shift) == 0.0
+
+
+def test_bad_perfect_params_are_errors_naming_the_field():
+    """Non-positive speeds, sample time, radius or jump, negative regularisation, bad tolerances
+    and counts below one are refused at construction, where concrete."""
+    for kw, match in [(dict(a=0.0), "PerfectParams.a"), (dict(b=float("nan")), "PerfectParams.b"),
+                      (dict(ts=-0.01), "PerfectParams.ts"), (dict(radius=0.0), "PerfectParams.radius"),
+                      (dict(max_jump=float("inf")), "PerfectParams.max_jump"), (dict(mu=-1.0), "PerfectParams.mu"),
+                      (dict(rtol=-1e-5), "PerfectParams.rtol"), (dict(rtol=0.0, atol=0.0), "both zero"),
+                      (dict(n_samples=0), "PerfectParams.n_samples"), (dict(hold_samples=1.5), "PerfectParams.hold_samples"),
+                      (dict(buffer_size=0), "PerfectParams.buffer_size"),
+                      (dict(max_steps_per_sample=0), "PerfectParams.max_steps_per_sample")]:
+        with pytest.raises(ValueError, match=match):
+            PerfectParams(**kw)
+    PerfectParams(mu=0.0, atol=0.0, hold_samples=1)
+    assert float(jax.jit(lambda r: PerfectParams(radius=r).radius)(jnp.asarray(0.2))) == 0.2

@@ -220,3 +220,17 @@ def test_converged_means_optimal_after_any_iteration_count():
                     assert np.all(x >= lb - 1e-9) and np.all(x <= ub + 1e-9), (polish, it)
                     bound = 8 * (1e-9 + 1e-9 * abs(f(P, c, ref))) + 1e-12
                     assert f(P, c, x) - f(P, c, ref) <= bound, (polish, it)
+
+
+def test_bad_settings_are_errors_naming_the_field():
+    """A negative or NaN tolerance, no iterations or a step fraction outside (0, 1) would make the
+    interior-point loop stop at once or step out of the cone; each is refused at construction."""
+    for kw, match in [(dict(eps_abs=-1e-6), "QPSettings.eps_abs"), (dict(eps_rel=float("nan")), "QPSettings.eps_rel"),
+                      (dict(max_iter=0), "QPSettings.max_iter"), (dict(max_iter=2.5), "QPSettings.max_iter"),
+                      (dict(step_fraction=1.0), "QPSettings.step_fraction"),
+                      (dict(step_fraction=0.0), "QPSettings.step_fraction")]:
+        with pytest.raises(ValueError, match=match):
+            QPSettings(**kw)
+    QPSettings(eps_abs=jnp.asarray(0.0), eps_rel=jnp.asarray(1e-8), max_iter=1, step_fraction=0.5)
+    # traced tolerances (a caller's jit) are the caller's
+    assert float(jax.jit(lambda e: QPSettings(eps_abs=e).eps_abs)(jnp.asarray(1e-6))) == 1e-6

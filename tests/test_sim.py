@@ -492,7 +492,11 @@ def test_bad_input_raises():
                       (dict(rtol=0.0, atol=0.0), "both zero"), (dict(q_bound=0.0), "SimParams.q_bound"),
                       (dict(qd_bound=float("nan")), "SimParams.qd_bound"),
                       (dict(goal_radius=-0.1), "SimParams.goal_radius"),
-                      (dict(pcoeff=float("inf")), "SimParams.pcoeff")]:
+                      (dict(pcoeff=float("inf")), "SimParams.pcoeff"),
+                      (dict(max_steps_per_sample=0), "SimParams.max_steps_per_sample"),
+                      (dict(hold_samples=0), "SimParams.hold_samples"),
+                      (dict(guidance_samples=60.0), "SimParams.guidance_samples"),
+                      (dict(buffer_size=0), "SimParams.buffer_size")]:
         with pytest.raises(ValueError, match=match):
             SimParams(**kw)
     SimParams(atol=0.0, q_bound=float("inf"), icoeff=0.0, pcoeff=0.4)  # valid: relative only, no bound

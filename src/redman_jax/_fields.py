@@ -114,6 +114,22 @@ def _check_positive(name: str, x, allow_zero: bool = False) -> None:
         raise ValueError(f"{name}: expected a finite {kind} value, got {v}")
 
 
+def _check_tolerances(owner: str, rtol, atol) -> None:
+    """An adaptive solver's ``rtol`` and ``atol``, where concrete: finite, non-negative, not both
+    zero (no step would ever be accepted)."""
+    _check_positive(f"{owner}.rtol", rtol, allow_zero=True)
+    _check_positive(f"{owner}.atol", atol, allow_zero=True)
+    r, a = _concrete(rtol), _concrete(atol)
+    if r is not None and a is not None and np.any((r == 0) & (a == 0)):
+        raise ValueError(f"{owner}.rtol, {owner}.atol: both zero, no step would ever be accepted")
+
+
+def _check_count(name: str, value, least: int) -> None:
+    """A static count: an ``int`` (not a bool) of at least ``least``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        raise ValueError(f"{name}: expected an int >= {least}, got {value!r}")
+
+
 # ----------------------------------------------------------------------------------------------
 # Radial obstacle potential (3.8/3.9 corrected)
 # ----------------------------------------------------------------------------------------------

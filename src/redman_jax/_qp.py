@@ -71,6 +71,17 @@ class QPSettings(eqx.Module):
     step_fraction: float = eqx.field(static=True, default=0.99)
     polish: bool = eqx.field(static=True, default=True)
 
+    def __check_init__(self):
+        for name in ("eps_abs", "eps_rel"):
+            v = getattr(self, name)
+            if v is not None and not isinstance(v, jax.core.Tracer) and np.any(
+                    ~np.isfinite(np.asarray(v)) | (np.asarray(v) < 0)):
+                raise ValueError(f"QPSettings.{name}: expected None or a finite non-negative value, got {v}")
+        if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, (int, np.integer)) or self.max_iter < 1:
+            raise ValueError(f"QPSettings.max_iter: expected an int >= 1, got {self.max_iter!r}")
+        if not 0 < self.step_fraction < 1:
+            raise ValueError(f"QPSettings.step_fraction: expected a value in (0, 1), got {self.step_fraction!r}")
+
 
 class QPSolution(eqx.Module):
     """Result of :func:`solve_qp`.

@@ -92,7 +92,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
-from ._fields import _check_positive, _concrete
+from ._fields import _check_count, _check_positive, _check_tolerances, _concrete
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
 from ._math import as_float
 from ._math import rot_to_quat
@@ -190,10 +190,11 @@ class SimParams(eqx.Module):
         if self.adjoint not in ("recursive", "direct", "backsolve"):
             raise ValueError(f"SimParams.adjoint: expected 'recursive', 'direct' or 'backsolve', "
                              f"got {self.adjoint!r}")
-        if self.max_steps_per_sample < 1:
-            raise ValueError("SimParams.max_steps_per_sample: must be >= 1")
+        for name in ("max_steps_per_sample", "guidance_samples", "hold_samples", "buffer_size"):
+            _check_count(f"SimParams.{name}", getattr(self, name), 1)
         # the numbers, where concrete (a SimParams built under a trace is checked by its caller)
-        for name in ("rtol", "atol", "guidance_rot_radius", "lme_mu"):
+        _check_tolerances("SimParams", self.rtol, self.atol)
+        for name in ("guidance_rot_radius", "lme_mu"):
             _check_positive(f"SimParams.{name}", getattr(self, name), allow_zero=True)
         for name in ("goal_radius", "lme_max_jump"):
             _check_positive(f"SimParams.{name}", getattr(self, name))
@@ -205,9 +206,6 @@ class SimParams(eqx.Module):
             v = _concrete(getattr(self, name))
             if v is not None and not np.all(np.isfinite(v)):
                 raise ValueError(f"SimParams.{name}: expected a finite value, got {v}")
-        rtol, atol = _concrete(self.rtol), _concrete(self.atol)
-        if rtol is not None and atol is not None and np.any((rtol == 0) & (atol == 0)):
-            raise ValueError("SimParams.rtol, SimParams.atol: both zero, no step would ever be accepted")
 
 
 _SOLVERS = {
