@@ -457,3 +457,18 @@ def test_start_at_the_goal_is_the_start_alone(star):
     assert not bool(r.success)
     out = plan_reference(jax.random.PRNGKey(0), obs, inside, inside, quat, 0.5, 0.01, 64, params)
     assert not bool(out.success)
+
+
+def test_quartic_trajectory_refuses_bad_input_naming_it():
+    """Waypoints that are not ``(W, 3)`` and a speed or end factor that is not finite and positive
+    (a negative speed gives negative segment durations) are errors at the call; traced values (a
+    caller's jit) are the caller's."""
+    wp = jnp.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.3, 0.3, 0.0]])
+    for args, kw, match in [((jnp.zeros(3), 2), {}, "waypoints must have shape"),
+                            ((wp, 3), dict(v_init=-0.5), "v_init"), ((wp, 3), dict(v_init=0.0), "v_init"),
+                            ((wp, 3), dict(end_factor=float("nan")), "end_factor")]:
+        with pytest.raises(ValueError, match=match):
+            quartic_trajectory(*args, **kw)
+    ref = quartic_trajectory(wp, 3, v_init=0.4)
+    traced = jax.jit(lambda v: quartic_trajectory(wp, 3, v_init=v))(jnp.asarray(0.4))
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.allclose(a, b)), ref, traced))

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from ._fields import _check_positive, _concrete
 from ._math import safe_norm
 from ._obstacles import ObstacleSet, min_distance
 from ._scenario import Reference
@@ -76,15 +77,6 @@ __all__ = [
 ]
 
 _TINY = 1e-9  # [m] two points closer than this are the same point
-
-
-def _concrete(x):
-    if isinstance(x, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(x)
-    except Exception:  # pragma: no cover
-        return None
 
 
 class RRTParams(eqx.Module):
@@ -647,6 +639,11 @@ def quartic_trajectory(waypoints: Float[Array, "W 3"], n_way, v_init=0.5,
     ``end_factor = 2`` (the mean speed of a rest-to-cruise ramp is half the cruise speed) the
     first and last joints are consistent and the time scaling slows the curve much less.
     """
+    waypoints = jnp.asarray(waypoints)
+    if waypoints.ndim != 2 or waypoints.shape[1] != 3:
+        raise ValueError(f"quartic_trajectory: waypoints must have shape (W, 3), got {waypoints.shape}")
+    _check_positive("quartic_trajectory: v_init", v_init)
+    _check_positive("quartic_trajectory: end_factor", end_factor)
     W = waypoints.shape[0]
     dtype = waypoints.dtype
     S = max(W - 1, 1)
