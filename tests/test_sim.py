@@ -491,6 +491,7 @@ def test_bad_input_raises():
     for kw, match in [(dict(rtol=-1e-5), "SimParams.rtol"), (dict(atol=float("nan")), "SimParams.atol"),
                       (dict(rtol=0.0, atol=0.0), "both zero"), (dict(q_bound=0.0), "SimParams.q_bound"),
                       (dict(qd_bound=float("nan")), "SimParams.qd_bound"),
+                      (dict(q_bound=-float("inf")), "SimParams.q_bound"),
                       (dict(goal_radius=-0.1), "SimParams.goal_radius"),
                       (dict(pcoeff=float("inf")), "SimParams.pcoeff"),
                       (dict(max_steps_per_sample=0), "SimParams.max_steps_per_sample"),

@@ -341,7 +341,7 @@ def cholesky_solve(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array
 def _forward_dynamics_lapack(arm: Arm, q, qd, tau, contact: LimitContact | None = None, *,
                              limits: bool = True):
     """:func:`forward_dynamics` with ``jax.scipy.linalg.cho_solve`` (test reference, benchmark "before")."""
-    tau = joint_vector(arm, tau, "tau", "forward_dynamics")
+    tau = joint_vector(arm, tau, "tau", "_forward_dynamics_lapack")
     M, h = dynamics_terms(arm, q, qd)
     rhs = tau - h
     if limits:

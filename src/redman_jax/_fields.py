@@ -48,10 +48,9 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._math import as_float, safe_norm
+from ._math import as_float, check_positive, safe_norm
 from ._obstacles import BIG_DISTANCE, ObstacleSet, Shapes, box_sdf, cylinder_sdf, sphere_sdf
 
 __all__ = [
@@ -92,42 +91,6 @@ _VO_AMPS = ("ee", "site")
 def _check_form(form: str) -> None:
     if form not in FORMS:
         raise ValueError(f"form: expected one of {FORMS}, got {form!r}")
-
-
-def _concrete(x):
-    """NumPy value of ``x`` if it is concrete (not traced), else None."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(x)
-    except Exception:  # pragma: no cover - exotic array types
-        return None
-
-
-def _check_positive(name: str, x, allow_zero: bool = False) -> None:
-    v = _concrete(x)
-    if v is None:
-        return
-    bad = ~np.isfinite(v) | ((v < 0) if allow_zero else (v <= 0))
-    if np.any(bad):
-        kind = "non-negative" if allow_zero else "positive"
-        raise ValueError(f"{name}: expected a finite {kind} value, got {v}")
-
-
-def _check_tolerances(owner: str, rtol, atol) -> None:
-    """An adaptive solver's ``rtol`` and ``atol``, where concrete: finite, non-negative, not both
-    zero (no step would ever be accepted)."""
-    _check_positive(f"{owner}.rtol", rtol, allow_zero=True)
-    _check_positive(f"{owner}.atol", atol, allow_zero=True)
-    r, a = _concrete(rtol), _concrete(atol)
-    if r is not None and a is not None and np.any((r == 0) & (a == 0)):
-        raise ValueError(f"{owner}.rtol, {owner}.atol: both zero, no step would ever be accepted")
-
-
-def _check_count(name: str, value, least: int) -> None:
-    """A static count: an ``int`` (not a bool) of at least ``least``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-        raise ValueError(f"{name}: expected an int >= {least}, got {value!r}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -411,11 +374,11 @@ class FieldParams(eqx.Module):
         _check_form(self.form)
         if self.vo_amp not in _VO_AMPS:
             raise ValueError(f"FieldParams.vo_amp: expected one of {_VO_AMPS}, got {self.vo_amp!r}")
-        _check_positive("FieldParams.a", self.a)
-        _check_positive("FieldParams.D", self.D)
-        _check_positive("FieldParams.d_v", self.d_v)
-        _check_positive("FieldParams.amp", self.amp, allow_zero=True)
-        _check_positive("FieldParams.clamp", self.clamp)
+        check_positive("FieldParams.a", self.a)
+        check_positive("FieldParams.D", self.D)
+        check_positive("FieldParams.d_v", self.d_v)
+        check_positive("FieldParams.amp", self.amp, allow_zero=True)
+        check_positive("FieldParams.clamp", self.clamp)
 
 
 def _amplitudes(x, goal_p, virtual_p, params: FieldParams):

@@ -29,9 +29,8 @@ import jax.numpy as jnp
 import diffrax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ._fields import (FieldParams, _check_count, _check_positive, _check_tolerances, guidance_velocity,
-                      total_gradient, total_hessian)
-from ._math import as_float
+from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
+from ._math import as_float, check_count, check_positive, check_tolerances
 from ._math import safe_norm
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
@@ -178,12 +177,12 @@ class PerfectParams(eqx.Module):
 
     def __check_init__(self):  # the numbers where concrete (built under a trace: the caller's)
         for name in ("a", "b", "ts", "max_jump", "radius"):
-            _check_positive(f"PerfectParams.{name}", getattr(self, name))
-        _check_positive("PerfectParams.mu", self.mu, allow_zero=True)
-        _check_tolerances("PerfectParams", self.rtol, self.atol)
+            check_positive(f"PerfectParams.{name}", getattr(self, name))
+        check_positive("PerfectParams.mu", self.mu, allow_zero=True)
+        check_tolerances("PerfectParams", self.rtol, self.atol)
         for name, least in (("n_samples", 1), ("hold_samples", 1), ("buffer_size", 1),
                             ("max_steps_per_sample", 1)):
-            _check_count(f"PerfectParams.{name}", getattr(self, name), least)
+            check_count(f"PerfectParams.{name}", getattr(self, name), least)
 
 
 class PerfectResult(eqx.Module):

@@ -69,7 +69,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
-from ._math import as_float
+from ._math import as_float, check_positive
 from ._math import clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
@@ -151,18 +151,11 @@ class IKParams(eqx.Module):
         # numbers, where concrete (not traced): a zero or NaN acceleration bound made the position
         # bounds NaN and every candidate silently invalid
         # (``activation < 0`` is allowed: it switches the constraint rows off)
-        rules = {"acc_limit": "positive", "goal_tolerance": "positive", "ns_speed_limit": "positive or inf",
-                 "w": "non-negative", "S_t": "positive", "S_r": "positive", "ori_clip": "positive",
-                 "limit_tolerance": "non-negative"}
-        for name, rule in rules.items():
-            x = getattr(self, name)
-            if isinstance(x, jax.core.Tracer):
-                continue
-            x = np.asarray(x)
-            ok = (x > 0) if rule.startswith("positive") else (x >= 0)
-            ok = ok & (np.isfinite(x) | (rule == "positive or inf") & (x == np.inf))
-            if not np.all(ok):
-                raise ValueError(f"IKParams.{name}: must be {rule}, got {x}")
+        for name in ("acc_limit", "goal_tolerance", "S_t", "S_r", "ori_clip"):
+            check_positive(f"IKParams.{name}", getattr(self, name))
+        check_positive("IKParams.ns_speed_limit", self.ns_speed_limit, allow_inf=True)
+        for name in ("w", "limit_tolerance"):
+            check_positive(f"IKParams.{name}", getattr(self, name), allow_zero=True)
 
 
 class IKResult(eqx.Module):

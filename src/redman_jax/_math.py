@@ -184,3 +184,44 @@ def check_finite_fields(module) -> None:
         a = np.asarray(v)
         if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
             raise ValueError(f"{type(module).__name__}.{f.name}: expected finite values, got {a}")
+
+
+def concrete(x):
+    """NumPy value of ``x`` if it is concrete (not traced), else None. The checks below skip a
+    traced value: a module built inside ``jit`` / ``vmap`` / ``grad`` is checked by its caller."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(x)
+    except Exception:  # pragma: no cover - exotic array types
+        return None
+
+
+def check_positive(name: str, x, allow_zero: bool = False, allow_inf: bool = False) -> None:
+    """Raise ``ValueError`` naming ``name`` unless concrete ``x`` is finite and positive
+    (non-negative with ``allow_zero``; ``+inf`` also passes with ``allow_inf``)."""
+    v = concrete(x)
+    if v is None:
+        return
+    finite = np.isfinite(v) | (allow_inf & (v == np.inf))
+    bad = ~finite | ((v < 0) if allow_zero else (v <= 0))
+    if np.any(bad):
+        kind = "non-negative" if allow_zero else "positive"
+        extra = " (inf: no bound)" if allow_inf else ""
+        raise ValueError(f"{name}: expected a {'' if allow_inf else 'finite '}{kind} value{extra}, got {v}")
+
+
+def check_tolerances(owner: str, rtol, atol) -> None:
+    """An adaptive solver's ``rtol`` and ``atol``, where concrete: finite, non-negative, not both
+    zero (no step would ever be accepted)."""
+    check_positive(f"{owner}.rtol", rtol, allow_zero=True)
+    check_positive(f"{owner}.atol", atol, allow_zero=True)
+    r, a = concrete(rtol), concrete(atol)
+    if r is not None and a is not None and np.any((r == 0) & (a == 0)):
+        raise ValueError(f"{owner}.rtol, {owner}.atol: both zero, no step would ever be accepted")
+
+
+def check_count(name: str, value, least: int) -> None:
+    """A static count: an ``int`` (not a bool) of at least ``least``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        raise ValueError(f"{name}: expected an int >= {least}, got {value!r}")

@@ -49,8 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ._fields import _check_positive, _concrete
-from ._math import safe_norm
+from ._math import check_positive, concrete, safe_norm
 from ._obstacles import ObstacleSet, min_distance
 from ._scenario import Reference
 
@@ -137,7 +136,7 @@ class RRTParams(eqx.Module):
                  v_max=1.0, a_max=2.0, end_factor=1.0, *, max_nodes=4096, path_capacity=512, edge_points=None,
                  near_points=None, k_near=16, rrt_star=False, window=5, subsample=4, dense=64):
         def npoints(length, res, name):
-            lv, rv = _concrete(length), _concrete(res)
+            lv, rv = concrete(length), concrete(res)
             if lv is None or rv is None:
                 raise ValueError(f"RRTParams.{name}: give it explicitly when step/radius are traced")
             if not (np.all(np.isfinite(lv)) and np.all(np.isfinite(rv)) and np.all(rv > 0)):
@@ -172,14 +171,14 @@ class RRTParams(eqx.Module):
     def __check_init__(self):
         for name in ("step", "safety", "box_margin", "edge_res", "goal_tol", "near_radius",
                      "v_init", "v_max", "a_max", "end_factor"):
-            v = _concrete(getattr(self, name))
+            v = concrete(getattr(self, name))
             if v is not None and (not np.all(np.isfinite(v)) or np.any(v <= 0)):
                 raise ValueError(f"RRTParams.{name}: expected a finite positive value, got {v}")
-        gb = _concrete(self.goal_bias)
+        gb = concrete(self.goal_bias)
         if gb is not None and (not np.all(np.isfinite(gb)) or np.any(gb < 0) or np.any(gb > 1)):
             raise ValueError(f"RRTParams.goal_bias: expected a probability in [0, 1], got {gb}")
         for name in ("max_iter", "refine_iters"):
-            v = _concrete(getattr(self, name))
+            v = concrete(getattr(self, name))
             if v is not None and np.any(v < 0):
                 raise ValueError(f"RRTParams.{name}: expected a non-negative count, got {v}")
         for name, low in (("max_nodes", 2), ("path_capacity", 2), ("edge_points", 2),
@@ -190,7 +189,7 @@ class RRTParams(eqx.Module):
                                  f"got {getattr(self, name)}")
         if self.window % 2 == 0:
             raise ValueError(f"RRTParams.window: expected an odd window, got {self.window}")
-        step, tol, rad, res = (_concrete(v) for v in (self.step, self.goal_tol, self.near_radius,
+        step, tol, rad, res = (concrete(v) for v in (self.step, self.goal_tol, self.near_radius,
                                                       self.edge_res))
         if step is not None and tol is not None and np.any(tol > step):
             raise ValueError(f"RRTParams.goal_tol: must not exceed step ({tol} > {step}); the goal "
@@ -198,7 +197,7 @@ class RRTParams(eqx.Module):
         if step is not None and res is not None and np.any(step / (self.edge_points - 1) > res * (1 + 1e-9)):
             raise ValueError(f"RRTParams.edge_points: {self.edge_points} points check a {step} m "
                              f"edge more sparsely than edge_res = {res} m")
-        safety = _concrete(self.safety)
+        safety = concrete(self.safety)
         if safety is not None and res is not None and np.any(safety <= res / 2):
             raise ValueError(f"RRTParams.safety: must exceed edge_res / 2 ({safety} <= {res} / 2): an "
                              "edge is checked at points edge_res apart, so between them it keeps only "
@@ -400,7 +399,7 @@ def _check_point(name, x):
     x_shape = np.shape(x)  # lists too (jnp.shape warns on them)
     if x_shape[-1:] != (3,):
         raise ValueError(f"{name}: expected a 3-vector, got shape {x_shape}")
-    v = _concrete(x)
+    v = concrete(x)
     if v is not None and not np.all(np.isfinite(v)):
         raise ValueError(f"{name}: expected finite coordinates, got {v}")
 
@@ -642,8 +641,8 @@ def quartic_trajectory(waypoints: Float[Array, "W 3"], n_way, v_init=0.5,
     waypoints = jnp.asarray(waypoints)
     if waypoints.ndim != 2 or waypoints.shape[1] != 3:
         raise ValueError(f"quartic_trajectory: waypoints must have shape (W, 3), got {waypoints.shape}")
-    _check_positive("quartic_trajectory: v_init", v_init)
-    _check_positive("quartic_trajectory: end_factor", end_factor)
+    check_positive("quartic_trajectory: v_init", v_init)
+    check_positive("quartic_trajectory: end_factor", end_factor)
     W = waypoints.shape[0]
     dtype = waypoints.dtype
     S = max(W - 1, 1)
@@ -779,7 +778,7 @@ def _validate_reference_args(rot_radius, ts, goal_quat, capacity) -> int:
     if int(capacity) < 1:
         raise ValueError(f"capacity: expected a positive number of samples, got {capacity}")
     for name, val, positive in (("rot_radius", rot_radius, False), ("ts", ts, True)):
-        v = _concrete(val)
+        v = concrete(val)
         if v is not None and (not np.all(np.isfinite(v)) or np.any(v < 0) or (positive and np.any(v <= 0))):
             raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'}"
                              f" value, got {v}")

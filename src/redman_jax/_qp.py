@@ -45,7 +45,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
+
+from ._math import check_count, check_positive
 from jaxtyping import Array, Bool, Float, Int
 
 __all__ = ["QPSettings", "QPSolution", "solve_qp", "solve_box_qp", "qp_residuals"]
@@ -72,13 +73,10 @@ class QPSettings(eqx.Module):
     polish: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
-        for name in ("eps_abs", "eps_rel"):
-            v = getattr(self, name)
-            if v is not None and not isinstance(v, jax.core.Tracer) and np.any(
-                    ~np.isfinite(np.asarray(v)) | (np.asarray(v) < 0)):
-                raise ValueError(f"QPSettings.{name}: expected None or a finite non-negative value, got {v}")
-        if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, (int, np.integer)) or self.max_iter < 1:
-            raise ValueError(f"QPSettings.max_iter: expected an int >= 1, got {self.max_iter!r}")
+        for name in ("eps_abs", "eps_rel"):  # None: the default
+            if getattr(self, name) is not None:
+                check_positive(f"QPSettings.{name}", getattr(self, name), allow_zero=True)
+        check_count("QPSettings.max_iter", self.max_iter, 1)
         if not 0 < self.step_fraction < 1:
             raise ValueError(f"QPSettings.step_fraction: expected a value in (0, 1), got {self.step_fraction!r}")
 

@@ -19,10 +19,11 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
+
+from ._math import concrete
 
 __all__ = ["Arm", "thesis_arm", "JOINT_SEQUENCES"]
 
@@ -34,10 +35,6 @@ JOINT_SEQUENCES: dict[int, tuple[str, ...]] = {
 }
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 class Arm(eqx.Module):
@@ -130,7 +127,7 @@ def _validate_arm(arm: Arm) -> None:
         if got != shape:
             raise ValueError(f"Arm.{field}: expected shape {shape}, got {got}")
     leaves = [getattr(arm, f) for f in shapes]
-    if not all(_is_concrete(v) for v in leaves):
+    if any(concrete(v) is None for v in leaves):
         return  # built under a transformation: shapes checked, values cannot be
     vals = {f: np.asarray(getattr(arm, f)) for f in shapes}
     for field, v in vals.items():

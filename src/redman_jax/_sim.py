@@ -92,9 +92,8 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
-from ._fields import _check_count, _check_positive, _check_tolerances, _concrete
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
-from ._math import as_float
+from ._math import as_float, check_count, check_positive, check_tolerances, concrete
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -191,19 +190,17 @@ class SimParams(eqx.Module):
             raise ValueError(f"SimParams.adjoint: expected 'recursive', 'direct' or 'backsolve', "
                              f"got {self.adjoint!r}")
         for name in ("max_steps_per_sample", "guidance_samples", "hold_samples", "buffer_size"):
-            _check_count(f"SimParams.{name}", getattr(self, name), 1)
+            check_count(f"SimParams.{name}", getattr(self, name), 1)
         # the numbers, where concrete (a SimParams built under a trace is checked by its caller)
-        _check_tolerances("SimParams", self.rtol, self.atol)
+        check_tolerances("SimParams", self.rtol, self.atol)
         for name in ("guidance_rot_radius", "lme_mu"):
-            _check_positive(f"SimParams.{name}", getattr(self, name), allow_zero=True)
+            check_positive(f"SimParams.{name}", getattr(self, name), allow_zero=True)
         for name in ("goal_radius", "lme_max_jump"):
-            _check_positive(f"SimParams.{name}", getattr(self, name))
+            check_positive(f"SimParams.{name}", getattr(self, name))
         for name in ("q_bound", "qd_bound"):  # inf: no bound
-            v = _concrete(getattr(self, name))
-            if v is not None and np.any(np.isnan(v) | (v <= 0)):
-                raise ValueError(f"SimParams.{name}: expected a positive value (inf: no bound), got {v}")
+            check_positive(f"SimParams.{name}", getattr(self, name), allow_inf=True)
         for name in ("pcoeff", "icoeff"):
-            v = _concrete(getattr(self, name))
+            v = concrete(getattr(self, name))
             if v is not None and not np.all(np.isfinite(v)):
                 raise ValueError(f"SimParams.{name}: expected a finite value, got {v}")
 
