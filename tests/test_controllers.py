@@ -22,7 +22,7 @@ from redman_jax._controllers import (
     jdot_qdot_from,
     make_controller,
 )
-from redman_jax._math import quat_error, quat_mul, rot_to_quat
+from redman_jax._math import quat_error, quat_mul
 from redman_jax._nullspace import nullspace_policy
 
 ARM = rj.thesis_arm(7)

@@ -17,7 +17,7 @@ import pytest
 
 import redman_jax
 from redman_jax._ik import IKParams, ik_reference, validate_ik, validated_scenarios
-from redman_jax._kinematics import end_effector_pose, poi_jacobians, poi_positions
+from redman_jax._kinematics import end_effector_pose, poi_positions
 from redman_jax._nullspace import ik_policy_gains
 from redman_jax._obstacles import make_obstacles, obstacle_distances
 from redman_jax._scenario import Reference, Scenario

@@ -18,7 +18,6 @@ import redman_jax  # noqa: F401  (x64)
 from redman_jax._control_types import AbstractController, ControlOutput
 from redman_jax._dynamics import dynamics_terms
 from redman_jax._kinematics import jacobian, jacobian_from, jdot_qdot, kinematics, end_effector_pose
-from redman_jax._math import rot_to_quat
 from redman_jax._obstacles import make_obstacles
 from redman_jax._robot import thesis_arm
 from redman_jax._scenario import Reference, Scenario, stack_scenarios

@@ -63,7 +63,6 @@ from ._obstacles import make_obstacles
 from ._robot import Arm
 from ._scenario import CASES, Reference, Scenario
 from ._trajectories import (
-    Segment,
     assemble_reference,
     concat_segments,
     constant_segment,

@@ -47,7 +47,6 @@ def run_demo(arm_spec: str = "9", case: str = "simple", seed: int = 1, controlle
 
     scen = jax.tree.map(lambda x: np.asarray(x)[0], built["scenarios"])
     n = int(row["n_samples"])
-    from ._sim import SimParams  # noqa: F401  (documented default solver settings)
 
     q_traj = _joint_path(arm, built, controller)
     ax = plot_scenario(scen, arm=arm, q=q_traj[n - 1])

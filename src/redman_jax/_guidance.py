@@ -27,7 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import diffrax
-from jaxtyping import Array, Bool, Float, Int, PyTree
+from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
 from ._math import as_float, check_count, check_positive, check_tolerances

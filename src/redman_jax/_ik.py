@@ -71,7 +71,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
 from ._math import as_float, check_positive
 from ._math import clip_norm, quat_error, rot_to_quat
-from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector, obstacle_policy
+from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
 from ._obstacles import ObstacleSet, obstacle_distances
 from ._qp import QPSettings, solve_qp

@@ -201,7 +201,7 @@ def poi_jacobians_from(arm: Arm, kin: Kinematics, pois: Float[Array, "m 3"]) -> 
     point ``k`` moves at ``(k / P) q_dot_i`` along the axis, so column ``i`` is scaled by ``k / P``
     (equal to ``jax.jacfwd`` of :func:`poi_positions`, tested).
     """
-    n, P = arm.n_dof, arm.points_per_link
+    n = arm.n_dof
     dtype = kin.S.dtype
     link = jnp.asarray(poi_link_index(arm))
     cols = jax.vmap(lambda p: _point_cols(kin.S, p))(pois)  # (m, 3, n)

@@ -2,6 +2,11 @@
 
 Every function is pure, works on a single element and vmaps; none of them has a NaN gradient at
 the identity (the double-``where`` trick guards the square roots).
+
+The module also holds the checks the public modules (gains, parameters, arms) run at
+construction: :func:`check_finite_fields`, :func:`check_positive`, :func:`check_tolerances` and
+:func:`check_count`. They read concrete values only (:func:`concrete`); a module built under a
+trace is its caller's to check.
 """
 
 from __future__ import annotations

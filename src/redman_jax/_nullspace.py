@@ -49,9 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._math import as_float, check_finite_fields
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
-from ._kinematics import Kinematics, poi_jacobians_from, poi_link_index, poi_positions_from
+from ._kinematics import Kinematics, poi_positions_from
 from ._robot import Arm
 
 __all__ = [

@@ -84,7 +84,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
 from ._math import as_float
 from ._control_types import AbstractController, ControlOutput, ControlState
