@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._kinematics import end_effector_pose, forward_kinematics, poi_positions
+from ._host import put, take
 from ._obstacles import make_obstacles
 from ._robot import Arm
 from ._scenario import CASES, Reference, Scenario
@@ -880,10 +881,10 @@ def _plan(case, scenes, seeds_used, info: _ArmInfo, prm: CaseParams, batch: int)
     caps = P.obstacle_capacity()
     ci = CASES.index(case)
     keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(int(s)), ci) for s in seeds_used])
-    obs = jax.tree.map(lambda *x: jnp.asarray(np.stack([np.asarray(v) for v in x])),
+    obs = jax.tree.map(lambda *x: put(np.stack([np.asarray(v) for v in x])),
                        *[make_obstacles(s.spheres, s.boxes, s.cylinders, capacities=caps) for s in scenes])
-    gp = jnp.asarray(np.stack([s.goal_p for s in scenes]))
-    gq = jnp.asarray(np.stack([s.goal_quat for s in scenes]))
+    gp = put(np.stack([s.goal_p for s in scenes]))
+    gq = put(np.stack([s.goal_quat for s in scenes]))
     dtype = gp.dtype
     ref, ok = _plan_batch(keys, obs, jnp.asarray(info.start_p, dtype), gp, gq,
                           jnp.asarray(P.rot_radius, dtype), jnp.asarray(prm.ts, dtype), _rrt_params(prm),
@@ -1007,7 +1008,7 @@ def _build(case, seeds, arm, params, validate, max_retries, stats):
         if case in RRT_CASES and ready:
             refs, ok = _plan(case, [c.scene for _, c in ready], [c.seed_used for _, c in ready], info, prm, B)
             for j, (_, c) in enumerate(ready):
-                c.ref = jax.tree.map(lambda x: jnp.asarray(x[j]), refs)
+                c.ref = jax.tree.map(lambda x: take(x, j), refs)
                 c.reason = None if ok[j] else "planner_failure"
                 c.reason = c.reason or _check_planned(c.scene, c.ref, info, prm)
             ready = [(i, c) for i, c in ready if c.reason is None]
@@ -1091,4 +1092,4 @@ def make_scenarios(case: str, seeds, arm: Arm, params: CaseParams | None = None,
 
 def _stack(scenarios) -> Scenario:
     """Stack on the host (``stack_scenarios`` compiles one ``jnp.stack`` per leaf shape, ~1.5 s)."""
-    return jax.tree.map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *scenarios)
+    return jax.tree.map(lambda *xs: put(np.stack([np.asarray(x) for x in xs])), *scenarios)

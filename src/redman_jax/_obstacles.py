@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._host import host_array, put
 from ._math import safe_norm
 
 __all__ = [
@@ -127,7 +128,7 @@ def _family(items, capacity, kind):
         if dk.size < need or np.any(dk3[:need] <= 0) or not np.all(np.isfinite(dk3)):
             raise ValueError(f"{kind}[{k}].dims: need {need} positive finite sizes, got {dk}")
         R[k], p[k], dims[k], mask[k] = Rk, pk, dk3, True
-    return Shapes(R=jnp.asarray(R), p=jnp.asarray(p), dims=jnp.asarray(dims), mask=jnp.asarray(mask))
+    return Shapes(R=put(R), p=put(p), dims=put(dims), mask=put(mask))
 
 
 def make_obstacles(spheres=(), boxes=(), cylinders=(), capacities=(None, None, None)) -> ObstacleSet:
@@ -157,12 +158,17 @@ def _pad_family(s: Shapes, capacity: int) -> Shapes:
         raise ValueError(f"pad_obstacles: capacity {capacity} < current {k}")
     extra = capacity - k
     lead = s.mask.shape[:-1]
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=s.R.dtype), lead + (extra, 3, 3))
+    host = [host_array(x) for x in (s.R, s.p, s.dims, s.mask)]
+    if all(h is not None for h in host):  # concrete: in NumPy (eager jnp compiles per shape)
+        xp, (R, p, dims, mask), out = np, host, put
+    else:
+        xp, (R, p, dims, mask), out = jnp, (s.R, s.p, s.dims, s.mask), lambda x: x
+    eye = xp.broadcast_to(xp.eye(3, dtype=R.dtype), lead + (extra, 3, 3))
     return Shapes(
-        R=jnp.concatenate([s.R, eye], axis=-3),
-        p=jnp.concatenate([s.p, jnp.zeros(lead + (extra, 3), s.p.dtype)], axis=-2),
-        dims=jnp.concatenate([s.dims, jnp.full(lead + (extra, 3), 1e-3, s.dims.dtype)], axis=-2),
-        mask=jnp.concatenate([s.mask, jnp.zeros(lead + (extra,), bool)], axis=-1),
+        R=out(xp.concatenate([R, eye], axis=-3)),
+        p=out(xp.concatenate([p, xp.zeros(lead + (extra, 3), p.dtype)], axis=-2)),
+        dims=out(xp.concatenate([dims, xp.full(lead + (extra, 3), 1e-3, dims.dtype)], axis=-2)),
+        mask=out(xp.concatenate([mask, xp.zeros(lead + (extra,), bool)], axis=-1)),
     )
 
 
@@ -190,8 +196,8 @@ def compact_obstacles(obs: ObstacleSet) -> ObstacleSet:
         K = max(1, int(mask.sum(-1).max(initial=0)))
         take = lambda x, extra: np.take_along_axis(np.asarray(x), order.reshape(order.shape + (1,) * extra),
                                                    axis=mask.ndim - 1)[..., :K, *([slice(None)] * extra)]
-        return Shapes(R=jnp.asarray(take(f.R, 2)), p=jnp.asarray(take(f.p, 1)),
-                      dims=jnp.asarray(take(f.dims, 1)), mask=jnp.asarray(take(f.mask, 0)))
+        return Shapes(R=put(take(f.R, 2)), p=put(take(f.p, 1)), dims=put(take(f.dims, 1)),
+                      mask=put(take(f.mask, 0)))
 
     return ObstacleSet(spheres=fam(obs.spheres), boxes=fam(obs.boxes), cylinders=fam(obs.cylinders),
                        slots_per_step=obs.slots_per_step)
@@ -212,6 +218,9 @@ def used_bound(obs: ObstacleSet) -> Int[Array, "3"]:
         return jnp.max(idx) if idx.size else jnp.zeros((), jnp.int32)
 
     return jnp.stack([last(obs.spheres), last(obs.boxes), last(obs.cylinders)])
+
+
+used_bound_jit = jax.jit(used_bound)  # for host code: one compilation per shape (eagerly: one per op)
 
 
 def with_used(obs: ObstacleSet, used) -> ObstacleSet:

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._distributed import is_multiprocess, to_host
+from ._host import host_array, put, take, to_device
 from ._obstacles import compact_obstacles
 
 __all__ = ["build_case", "run_controller", "make_gains", "shard_batch", "study_shapes", "pad_case"]
@@ -32,7 +33,7 @@ def _block(tree):
 
 
 def _take(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
+    return jax.tree.map(lambda x: take(x, i), tree)
 
 
 def shard_batch(tree):
@@ -139,18 +140,20 @@ def make_gains(controller, overrides: dict | None):
 def _sample_inputs(arm, scen, controller, gains):
     """A representative (state, reference, environment) for timing one control-law evaluation."""
     from ._control_types import ControlState, RefSample, make_environment
-    from ._obstacles import used_bound, with_used
+    from ._obstacles import used_bound_jit, with_used
 
     s = _take(scen, 0)
     ref = s.reference
     k = int(np.asarray(ref.n_samples)) // 2
     n = arm.n_dof
-    q = jnp.asarray(arm.q0)
-    state = ControlState(t=jnp.asarray(0.0), q=q, qd=jnp.zeros(n), z=controller.init_state(arm, q, jnp.zeros(n)))
-    rs = RefSample(p=ref.p[k], v=ref.v[k], a=ref.a[k], quat=ref.quat[k], omega=ref.omega[k],
-                   omega_dot=ref.omega_dot[k], rot=ref.rot[k], q=q, qd=jnp.zeros(n), qdd=jnp.zeros(n))
+    q = put(arm.q0)
+    zero = put(np.zeros(n))  # jnp.zeros(n): the default float dtype
+    state = ControlState(t=put(0.0), q=q, qd=zero, z=controller.init_state(arm, q, zero))
+    rs = RefSample(p=take(ref.p, k), v=take(ref.v, k), a=take(ref.a, k), quat=take(ref.quat, k),
+                   omega=take(ref.omega, k), omega_dot=take(ref.omega_dot, k), rot=take(ref.rot, k),
+                   q=q, qd=zero, qdd=zero)
     # the bound on the used slots, as the simulator sets it (the padded slots of pad_case skipped)
-    env = make_environment(with_used(s.obstacles, used_bound(s.obstacles)), s.goal_p, s.goal_quat)
+    env = make_environment(with_used(s.obstacles, used_bound_jit(s.obstacles)), s.goal_p, s.goal_quat)
     return state, rs, env
 
 
@@ -178,15 +181,18 @@ _SHARED_MAX_SLOTS = 32
 
 def _pad_rows(x, N: int, fill=None):
     """Pad axis 1 (samples) of a batched array to ``N`` rows: ``fill``, or the last row repeated."""
-    x = jnp.asarray(x)
+    x = put(x)
     extra = N - x.shape[1]
     if extra <= 0:
         return x
+    h = host_array(x)  # concrete: in NumPy (eager jnp compiles per shape)
+    xp, x = (jnp, x) if h is None else (np, h)
     if fill is None:
-        tail = jnp.repeat(x[:, -1:], extra, axis=1)
+        tail = xp.repeat(x[:, -1:], extra, axis=1)
     else:
-        tail = jnp.full((x.shape[0], extra) + x.shape[2:], fill, x.dtype)
-    return jnp.concatenate([x, tail], axis=1)
+        tail = xp.full((x.shape[0], extra) + x.shape[2:], fill, x.dtype)
+    out = xp.concatenate([x, tail], axis=1)
+    return out if h is None else put(out)
 
 
 def pad_case(scen, ik, shapes):
@@ -208,7 +214,7 @@ def pad_case(scen, ik, shapes):
     scen = Scenario(obstacles=pad_obstacles(scen.obstacles, caps), goal_p=scen.goal_p,
                     goal_quat=scen.goal_quat, reference=ref, seed=scen.seed, seed_used=scen.seed_used,
                     valid=scen.valid, case="custom")
-    q, qd, qdd = (jnp.asarray(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
+    q, qd, qdd = (put(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
     ik = (_pad_rows(q, N), _pad_rows(qd, N + qd.shape[1] - q.shape[1]),
           _pad_rows(qdd, N + qdd.shape[1] - q.shape[1]))
     return scen, ik
@@ -229,10 +235,10 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
 
     controller = CONTROLLERS[ctrl_name]()
     gains = make_gains(controller, gain_overrides)
-    scen = jax.tree.map(jnp.asarray, scen_payload["scenarios"])
+    scen = to_device(scen_payload["scenarios"])
     # active obstacle slots first, capacity cut to the largest count (warehouse: 146 -> <= 97 boxes)
     scen = eqx.tree_at(lambda s: s.obstacles, scen, compact_obstacles(scen.obstacles))
-    ik = jax.tree.map(jnp.asarray, scen_payload["ik"])
+    ik = to_device(scen_payload["ik"])
     N0 = scen.reference.capacity
     if shapes is not None and tuple(shapes[1]) == scen_payload["scenarios"].obstacles.capacities:
         # Obstacles stay compacted where the case keeps its own shapes (warehouse). The small cases

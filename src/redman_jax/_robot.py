@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._host import put
 from ._math import concrete
 
 __all__ = ["Arm", "thesis_arm", "JOINT_SEQUENCES"]
@@ -234,19 +235,19 @@ def thesis_arm(dof: int = 9, *, uniform_inertia: bool = True) -> Arm:
     ee = np.eye(4)
     ee[2, 3] = lengths.sum()
     return Arm(
-        screw_axes=jnp.asarray(np.array(screws)),
-        home_frames=jnp.asarray(np.array(frames)),
-        ee_home=jnp.asarray(ee),
-        masses=jnp.asarray(np.array(masses)),
-        coms=jnp.asarray(np.array(coms)),
-        inertias=jnp.asarray(np.array(inertias)),
-        q_min=jnp.asarray(np.array(q_min)),
-        q_max=jnp.asarray(np.array(q_max)),
-        limited=jnp.asarray(np.array(limited)),
-        widths=jnp.full((dof,), 0.10),
-        seg_ends=jnp.asarray(np.stack([np.array([0.0, 0.0, L]) for L in lengths])),
-        q0=jnp.asarray(np.array(q0)),
-        gravity=jnp.asarray(np.array([0.0, 0.0, -9.81])),
+        screw_axes=put(np.array(screws)),
+        home_frames=put(np.array(frames)),
+        ee_home=put(ee),
+        masses=put(np.array(masses)),
+        coms=put(np.array(coms)),
+        inertias=put(np.array(inertias)),
+        q_min=put(np.array(q_min)),
+        q_max=put(np.array(q_max)),
+        limited=put(np.array(limited)),
+        widths=put(np.full(dof, 0.10)),
+        seg_ends=put(np.stack([np.array([0.0, 0.0, L]) for L in lengths])),
+        q0=put(np.array(q0)),
+        gravity=put(np.array([0.0, 0.0, -9.81])),
         prismatic=tuple(k[0] == "P" for k in kinds),
         joint_names=tuple(kinds),
         points_per_link=4,

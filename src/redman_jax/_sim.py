@@ -104,7 +104,8 @@ from ._metrics import (
     position_errors,
     run_metrics,
 )
-from ._obstacles import points_min_distance, used_bound, with_used
+from . import _host
+from ._obstacles import points_min_distance, used_bound, used_bound_jit, with_used
 from ._robot import Arm
 from ._scenario import Reference, Scenario
 
@@ -1025,11 +1026,10 @@ def _compact_finish(arm, scen, controller, gains, q0, qd0, params, used, axes, c
     return jax.vmap(one, in_axes=(0,) + axes + (0,))(scen, gains, q0, qd0, carry)
 
 
-_used_bound_jit = jax.jit(used_bound)  # one small compilation per shape (eagerly: one per op)
 
 
 def _take_rows(tree, idx, axis_batched=True):
-    return tree if not axis_batched else jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[idx]), tree)
+    return tree if not axis_batched else jax.tree.map(lambda x: _host.put(np.asarray(x)[idx]), tree)
 
 
 def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, params, gains_axis,
@@ -1037,7 +1037,7 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
     """:func:`simulate_batch` of a gradient-guided controller in ``mode="horizon"`` with straggler
     compaction (see ``_COMPACT_FRACTION``). ``stats`` (a dict), if given, records what happened."""
     R = int(scenarios.goal_p.shape[0])
-    used = _used_bound_jit(scenarios.obstacles)
+    used = used_bound_jit(scenarios.obstacles)
     axes = (gains_axis, q0_axis, q0_axis)
     args = (arm, scenarios, controller, gains, q0, qd0, params, used, axes)
     small = -(-R // _COMPACT_FRACTION)
@@ -1062,7 +1062,7 @@ def _simulate_guided_compacting(arm, scenarios, controller, gains, q0, qd0, para
                 def put(full, part):
                     full = np.array(full)
                     full[idx] = np.asarray(part)
-                    return jnp.asarray(full)
+                    return _host.put(full)
 
                 carry = jax.tree.map(put, carry, sub_carry)
                 compacted = idx.size
@@ -1122,14 +1122,14 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
 
     rows = _chunk_rows(R, k)
     take = lambda tree, idx, batched=True: (  # noqa: E731
-        jax.tree.map(lambda x: x[idx], tree) if batched and tree is not None else tree)
+        jax.tree.map(lambda x: _host.take(x, idx), tree) if batched and tree is not None else tree)
     with ThreadPoolExecutor(max_workers=k, thread_name_prefix="redman-sim") as pool:
         parts = [pool.submit(_simulate_members, arm, take(scenarios, idx), controller,
                              take(gains, idx, batch_gains), take(jref, idx), take(q0, idx),
                              take(qd0, idx, q0_axis == 0), params, gains_axis,
                              q0_axis) for idx in rows]
         parts = [f.result() for f in parts]
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:R], *parts)
+    return jax.tree.map(lambda *xs: _host.take(_host.concatenate(xs), slice(0, R)), *parts)
 
 
 _MIN_CHUNK = 8  # members per thread of simulate_batch, at least (below, dispatch costs dominate)

@@ -1,0 +1,70 @@
+"""_host: host-side data movement gives what the jax.numpy operation gives, and compiles nothing."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import backend_compiles
+
+import redman_jax  # noqa: F401  (float64)
+from redman_jax import _host
+
+
+def _same(a, b):
+    assert isinstance(a, jax.Array)
+    assert a.shape == b.shape and a.dtype == b.dtype and a.weak_type == b.weak_type
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+# shapes no other test uses, so that the jax.numpy references below would compile
+_SHAPES = [(13, 7, 3), (11, 5), (17,)]
+
+
+@pytest.mark.parametrize("shape", _SHAPES)
+def test_put_take_concatenate_equal_jax_numpy(shape):
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=shape)
+    xj = jnp.asarray(x)
+    idx = np.array([3, 0, 3, 1])
+    cases = [
+        (lambda: _host.put(x), lambda: jnp.asarray(x)),
+        (lambda: _host.put(x.astype(np.float32)), lambda: jnp.asarray(x.astype(np.float32))),
+        (lambda: _host.put(x > 0), lambda: jnp.asarray(x > 0)),
+        (lambda: _host.put(2.5), lambda: jnp.asarray(2.5)),  # weakly typed, both
+        (lambda: _host.put(np.float64(2.5)), lambda: jnp.asarray(np.float64(2.5))),
+        (lambda: _host.take(xj, idx), lambda: xj[idx]),
+        (lambda: _host.take(x, 2), lambda: xj[2]),
+        (lambda: _host.take(xj, slice(1, 4)), lambda: xj[1:4]),
+        (lambda: _host.concatenate([xj, x[:2]]), lambda: jnp.concatenate([xj, x[:2]])),
+    ]
+    for ours, ref in cases:
+        _same(ours(), ref())
+    assert _host.put(xj) is xj
+
+
+def test_no_compilation_for_new_shapes():
+    x = np.arange(2 * 19 * 3, dtype=np.float64).reshape(2, 19, 3)
+    with backend_compiles() as compiles:
+        y = _host.put(x)
+        _host.take(y, np.array([1, 0]))
+        _host.take(y, 1)
+        _host.concatenate([y, y], axis=1)
+        _host.to_device({"a": x[0], "b": [x[1], 3.0]})
+    assert compiles == []
+    with backend_compiles() as compiles:  # the jax.numpy equivalent does compile (jax >= 0.10)
+        jnp.concatenate([y, y], axis=1)
+    assert len(compiles) >= 1
+
+
+def test_traced_and_weak_inputs_fall_back_on_jax_numpy():
+    x = jnp.arange(12.0).reshape(4, 3)
+
+    @jax.jit
+    def f(x):
+        return _host.take(x, jnp.array([2, 0])) + _host.concatenate([x, x])[:2]
+
+    np.testing.assert_array_equal(np.asarray(f(x)), np.asarray(x[jnp.array([2, 0])] + x[:2]))
+    weak = jnp.broadcast_to(jnp.asarray(2.0), (3, 2))  # weakly typed: jax.numpy keeps its rules
+    assert weak.weak_type and _host.host_array(weak) is None
+    _same(_host.take(weak, 1), weak[1])
+    _same(_host.concatenate([weak, weak]), jnp.concatenate([weak, weak]))
