@@ -1,5 +1,10 @@
 """_host: host-side data movement gives what the jax.numpy operation gives, and compiles nothing."""
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,3 +73,30 @@ def test_traced_and_weak_inputs_fall_back_on_jax_numpy():
     assert weak.weak_type and _host.host_array(weak) is None
     _same(_host.take(weak, 1), weak[1])
     _same(_host.concatenate([weak, weak]), jnp.concatenate([weak, weak]))
+
+
+def test_an_array_sharded_over_devices_keeps_the_jax_numpy_path():
+    """Two CPU devices (a subprocess): a batch sharded over both is not gathered to one device."""
+    script = textwrap.dedent(
+        """
+        import jax, numpy as np
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+        import redman_jax
+        from redman_jax import _host
+        assert len(jax.devices()) == 2
+        mesh = Mesh(np.array(jax.devices()), ("batch",))
+        x = jax.device_put(np.arange(24.0).reshape(8, 3), NamedSharding(mesh, P("batch", None)))
+        assert _host.host_array(x) is None
+        y = _host.take(x, np.array([5, 1]))
+        np.testing.assert_array_equal(np.asarray(y), np.asarray(x)[[5, 1]])
+        one = jax.device_put(np.arange(3.0), jax.devices()[1])
+        assert _host.host_array(one) is not None
+        print("ok")
+        """
+    )
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
+                     if "xla_force_host_platform_device_count" not in f)
+    env = dict(os.environ, XLA_FLAGS=flags + " --xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip().endswith("ok")

@@ -7,9 +7,9 @@ the default study's pipeline (slicing stored scenarios, splitting a batch over t
 cases) made 3,694 of them, about 50 s of its workers' time. These helpers do the same data
 movement in NumPy and place the result with :func:`jax.device_put`, which compiles nothing.
 
-They are for concrete arrays on this host. Under a trace, for an array sharded over several
-processes or one that is weakly typed (its promotion rules would change), they fall back on the
-``jax.numpy`` operation, so their results are the same either way.
+They are for concrete arrays on one device of this host. Under a trace, for an array sharded over
+several devices or one that is weakly typed (its promotion rules would change), they fall back on
+the ``jax.numpy`` operation, so their results are the same either way.
 """
 
 from __future__ import annotations
@@ -37,12 +37,13 @@ def to_device(tree):
 
 
 def host_array(x):
-    """NumPy view of ``x`` if it is a concrete, strongly typed array this process holds whole (or
-    already NumPy), else None."""
+    """NumPy view of ``x`` if it is a concrete, strongly typed array on one device of this process
+    (or already NumPy), else None. An array sharded over several devices keeps its layout through
+    the ``jax.numpy`` operation instead."""
     if isinstance(x, np.ndarray):
         return x
     if (isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and not x.weak_type
-            and x.is_fully_addressable):
+            and x.is_fully_addressable and len(x.sharding.device_set) == 1):
         return np.asarray(x)
     return None
 
