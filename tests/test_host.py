@@ -100,3 +100,34 @@ def test_an_array_sharded_over_devices_keeps_the_jax_numpy_path():
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip().endswith("ok")
+
+
+def _as_float_jnp(x):
+    """as_float as it was before host values skipped jax.numpy (the reference)."""
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.floating) and not x.weak_type:
+        return x
+    if jnp.issubdtype(x.dtype, jnp.bool_):
+        return x
+    return x.astype(jnp.result_type(float))
+
+
+def test_as_float_of_host_values_equals_jax_numpy_and_compiles_nothing():
+    from redman_jax._math import as_float
+
+    values = [2.5, 3, True, np.float64(0.25), np.float32(0.5), np.int64(4), np.bool_(False),
+              np.arange(3, dtype=np.float32).reshape(1, 3) + 0.5, np.arange(5, dtype=np.int32),
+              np.linspace(0.1, 0.7, 7), np.full((2, 9), 1.5, np.float16)]
+    with backend_compiles() as compiles:  # first: the jax.numpy path would compile these shapes
+        ours = [as_float(v) for v in values]
+    assert compiles == []
+    refs = [_as_float_jnp(v) for v in values]
+    for a, b in zip(ours, refs):
+        _same(a, b)
+    # jax arrays (weak and strong) and tracers go through jax.numpy as before
+    for v in (jnp.asarray(2.0), jnp.arange(3), jnp.ones(2, jnp.float32)):
+        _same(as_float(v), _as_float_jnp(v))
+    np.testing.assert_allclose(np.asarray(jax.jit(as_float)(jnp.arange(3))), [0.0, 1.0, 2.0])
+    # a list (which may hold tracers) too
+    _same(as_float([0.5, 1.5]), _as_float_jnp([0.5, 1.5]))
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda k: as_float([k, 2 * k]))(1.5)), [1.5, 3.0])

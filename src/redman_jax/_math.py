@@ -166,7 +166,17 @@ def as_float(x):
     ``jnp.asarray(1.0)`` is *weakly* typed, so a gains pytree built from Python floats and one
     built from arrays (a user's, or a tuner's) would compile separately; converting every number
     with this keeps one compilation. Arrays that already have a floating dtype keep it.
+
+    A host value (a Python number or a NumPy array or scalar) is converted in NumPy and placed with
+    ``jax.device_put``, the same result without compiling (outside ``jit`` ``jnp.asarray`` and
+    ``astype`` each compile a small program per shape, see :mod:`redman_jax._host`).
     """
+    if isinstance(x, (bool, int, float, complex, np.ndarray, np.generic)):
+        weak = type(x) in (bool, int, float, complex)  # Python scalars: weakly typed in JAX
+        a = np.asarray(x)
+        if a.dtype.kind == "b" or (a.dtype.kind == "f" and not weak):
+            return jax.device_put(a)
+        return jax.device_put(a.astype(jnp.result_type(float)))
     x = jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.floating) and not x.weak_type:
         return x
