@@ -103,13 +103,11 @@ def test_an_array_sharded_over_devices_keeps_the_jax_numpy_path():
 
 
 def _as_float_jnp(x):
-    """as_float as it was before host values skipped jax.numpy (the reference)."""
-    x = jnp.asarray(x)
-    if jnp.issubdtype(x.dtype, jnp.floating) and not x.weak_type:
-        return x
-    if jnp.issubdtype(x.dtype, jnp.bool_):
-        return x
-    return x.astype(jnp.result_type(float))
+    """as_float as it was before host values skipped jax.numpy (the reference): ``jnp.asarray``
+    first, then its jax-array path."""
+    from redman_jax._math import as_float
+
+    return as_float(jnp.asarray(x))
 
 
 def test_as_float_of_host_values_equals_jax_numpy_and_compiles_nothing():
