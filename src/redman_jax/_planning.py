@@ -171,9 +171,7 @@ class RRTParams(eqx.Module):
     def __check_init__(self):
         for name in ("step", "safety", "box_margin", "edge_res", "goal_tol", "near_radius",
                      "v_init", "v_max", "a_max", "end_factor"):
-            v = concrete(getattr(self, name))
-            if v is not None and (not np.all(np.isfinite(v)) or np.any(v <= 0)):
-                raise ValueError(f"RRTParams.{name}: expected a finite positive value, got {v}")
+            check_positive(f"RRTParams.{name}", getattr(self, name))
         gb = concrete(self.goal_bias)
         if gb is not None and (not np.all(np.isfinite(gb)) or np.any(gb < 0) or np.any(gb > 1)):
             raise ValueError(f"RRTParams.goal_bias: expected a probability in [0, 1], got {gb}")
@@ -777,11 +775,8 @@ def _hold_reference(p0, goal_p, goal_quat, rot_radius, ts, capacity, dtype):
 def _validate_reference_args(rot_radius, ts, goal_quat, capacity) -> int:
     if int(capacity) < 1:
         raise ValueError(f"capacity: expected a positive number of samples, got {capacity}")
-    for name, val, positive in (("rot_radius", rot_radius, False), ("ts", ts, True)):
-        v = concrete(val)
-        if v is not None and (not np.all(np.isfinite(v)) or np.any(v < 0) or (positive and np.any(v <= 0))):
-            raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'}"
-                             f" value, got {v}")
+    check_positive("rot_radius", rot_radius, allow_zero=True)
+    check_positive("ts", ts)
     if jnp.shape(goal_quat)[-1:] != (4,):
         raise ValueError(f"goal_quat: expected a 4-vector, got shape {jnp.shape(goal_quat)}")
     return int(capacity)

@@ -45,9 +45,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
 
 from ._math import check_count, check_positive
-from jaxtyping import Array, Bool, Float, Int
 
 __all__ = ["QPSettings", "QPSolution", "solve_qp", "solve_box_qp", "qp_residuals"]
 

@@ -127,10 +127,9 @@ def _validate_arm(arm: Arm) -> None:
         got = tuple(jnp.shape(value))
         if got != shape:
             raise ValueError(f"Arm.{field}: expected shape {shape}, got {got}")
-    leaves = [getattr(arm, f) for f in shapes]
-    if any(concrete(v) is None for v in leaves):
+    vals = {f: concrete(getattr(arm, f)) for f in shapes}
+    if any(v is None for v in vals.values()):
         return  # built under a transformation: shapes checked, values cannot be
-    vals = {f: np.asarray(getattr(arm, f)) for f in shapes}
     for field, v in vals.items():
         if field != "limited" and not np.all(np.isfinite(v)):
             raise ValueError(f"Arm.{field}: contains non-finite values")

@@ -1026,8 +1026,6 @@ def _compact_finish(arm, scen, controller, gains, q0, qd0, params, used, axes, c
     return jax.vmap(one, in_axes=(0,) + axes + (0,))(scen, gains, q0, qd0, carry)
 
 
-
-
 def _take_rows(tree, idx, axis_batched=True):
     return tree if not axis_batched else jax.tree.map(lambda x: _host.put(np.asarray(x)[idx]), tree)
 
