@@ -524,3 +524,35 @@ def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():
         for ctrl in (CTRL, GradientGuided()):
             assert type(_make_solver(SimParams(solver=name), ctrl)) is cls
             assert solver_name(SimParams(solver=name), ctrl) == name
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_even_split_keeps_a_step_the_clip_ends_at_the_sample_end(dtype):
+    """The even split (``_EvenSplit``) never splits a step that the jump clip ends one float before
+    the sample end: it reaches the end. In float32 the 1e-6 margin of its piece count is smaller
+    than that float relative to the step, and the step used to be halved again and again (16,578
+    against 1,662 steps, 7-DOF simple, velocity OSC). A step well short of the end is still
+    split evenly."""
+    from redman_jax._sim import _pid, _Y
+
+    ts = jnp.asarray(0.01, dtype)
+    ends = ts * jnp.arange(1, 11, dtype=dtype)
+    ctrl = _pid(SimParams(), jump_ts=ends[:-1], ends=ends)
+    y = _Y(q=jnp.ones(3, dtype), qd=jnp.zeros(3, dtype), z=jnp.zeros(0, dtype), f=jnp.zeros(3, dtype))
+    b = ends[1]
+    t0 = jnp.asarray(0.0186666, dtype)
+    t1 = jnp.asarray(0.0193333, dtype)
+    _, state = ctrl.init(None, t0, t1, y, t1 - t0, None, None, 5)
+
+    def adapt(err):  # the error of the step [t0, t1], as a fraction of the tolerance
+        y_err = jax.tree.map(lambda x: err * (1e-7 + 1e-5 * jnp.abs(x)), y)  # SimParams' tolerances
+        keep, nt0, nt1, _, _, _ = ctrl.adapt_step_size(t0, t1, y, y, None, y_err, 5, state)
+        return bool(keep), nt0, nt1
+
+    keep, nt0, nt1 = adapt(0.0)  # tiny error: the PID proposes 10x the step, the clip cuts it at b
+    assert keep and nt0 == t1
+    assert nt1 == jnp.nextafter(b, jnp.asarray(-jnp.inf, dtype))  # not halved
+    keep, nt0, nt1 = adapt(2.0)  # rejected: the retry from t0 covers the rest in equal pieces
+    pieces = float(b - nt0) / float(nt1 - nt0)
+    assert not keep and nt0 == t0
+    assert pieces > 1.5 and pieces == pytest.approx(round(pieces), rel=1e-4)

@@ -456,7 +456,13 @@ class _EvenSplit(diffrax.AbstractAdaptiveStepSizeController):
         rem = jnp.where(finite, b - next_t0, 0.0)
         n = jnp.ceil(rem / jnp.where(h > 0, h, 1.0) - 1e-6)
         even = next_t0 + rem / jnp.maximum(n, 1.0)
-        split = finite & (h > 0) & (rem > h) & (b > next_t0)
+        # A step the clip ends one float before b (``prevbefore(b)``) reaches b: never split it.
+        # Otherwise, once that float is more than 1e-6 of the step (float32: any step under 2 ms
+        # at t = 0.02 s; float64: under about 2e-9 s at t = 10 s), the margin above makes two pieces, and every
+        # halving makes the next one certain (7-DOF simple, velocity OSC, float32: 16,578 steps
+        # against 3,568 with this check).
+        reaches = b - next_t1 <= 4 * jnp.finfo(b.dtype).eps * jnp.abs(b)
+        split = finite & (h > 0) & (rem > h) & (b > next_t0) & ~reaches
         next_t1 = jnp.where(split, jnp.minimum(next_t1, even), next_t1)
         return keep, next_t0, next_t1, made_jump, state, result
 
