@@ -533,11 +533,12 @@ def test_even_split_keeps_a_step_the_clip_ends_at_the_sample_end(dtype):
     than that float relative to the step, and the step used to be halved again and again (16,578
     against 1,662 steps, 7-DOF simple, velocity OSC). A step well short of the end is still
     split evenly."""
-    from redman_jax._sim import _pid, _Y
+    from redman_jax._sim import _pid, _Y, tolerances
 
     ts = jnp.asarray(0.01, dtype)
     ends = ts * jnp.arange(1, 11, dtype=dtype)
-    ctrl = _pid(SimParams(), jump_ts=ends[:-1], ends=ends)
+    ctrl = _pid(SimParams(), dtype, jump_ts=ends[:-1], ends=ends)
+    rtol, atol = tolerances(SimParams(), dtype)
     y = _Y(q=jnp.ones(3, dtype), qd=jnp.zeros(3, dtype), z=jnp.zeros(0, dtype), f=jnp.zeros(3, dtype))
     b = ends[1]
     t0 = jnp.asarray(0.0186666, dtype)
@@ -545,7 +546,7 @@ def test_even_split_keeps_a_step_the_clip_ends_at_the_sample_end(dtype):
     _, state = ctrl.init(None, t0, t1, y, t1 - t0, None, None, 5)
 
     def adapt(err):  # the error of the step [t0, t1], as a fraction of the tolerance
-        y_err = jax.tree.map(lambda x: err * (1e-7 + 1e-5 * jnp.abs(x)), y)  # SimParams' tolerances
+        y_err = jax.tree.map(lambda x: err * (atol + rtol * jnp.abs(x)), y)
         keep, nt0, nt1, _, _, _ = ctrl.adapt_step_size(t0, t1, y, y, None, y_err, 5, state)
         return bool(keep), nt0, nt1
 
@@ -556,3 +557,49 @@ def test_even_split_keeps_a_step_the_clip_ends_at_the_sample_end(dtype):
     pieces = float(b - nt0) / float(nt1 - nt0)
     assert not keep and nt0 == t0
     assert pieces > 1.5 and pieces == pytest.approx(round(pieces), rel=1e-4)
+
+
+def test_default_tolerances_follow_the_state_precision():
+    """``SimParams()`` leaves the tolerances to the states' precision (``tolerances``); given ones
+    are kept in any precision, and checked at construction whichever is given."""
+    from redman_jax._sim import DEFAULT_TOLERANCES, tolerances
+
+    assert tolerances(SimParams(), jnp.float64) == DEFAULT_TOLERANCES["float64"] == (1e-5, 1e-7)
+    assert tolerances(SimParams(), jnp.float32) == DEFAULT_TOLERANCES["float32"]
+    r, a = tolerances(SimParams(rtol=1e-6), jnp.float32)
+    assert float(r) == 1e-6 and a == DEFAULT_TOLERANCES["float32"][1]
+    with pytest.raises(ValueError, match="SimParams.atol"):
+        SimParams(atol=-1.0)
+
+
+def test_float32_run_matches_float64_in_as_many_steps(free):
+    """The same run with every input cast to float32 (default tolerances): its errors agree with
+    float64's to float32's level and it takes no more steps. Before the even split kept clipped
+    steps and the float32 tolerances, it took 10x the steps (halved toward every sample end)."""
+    sc, jref = free
+    f32 = lambda t: jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
+        x.dtype, jnp.floating) else x, t)
+    r64 = run(sc, jref)
+    r32 = simulate(f32(ARM), f32(sc), CTRL, f32(toy_gains("osc")), ik=f32(jref))  # params: cast inside
+    assert r32.q.dtype == jnp.float32 and not bool(r32.diverged)
+    m32, m64 = r32.metrics, r64.metrics
+    assert float(m32.mean_pos_err) == pytest.approx(float(m64.mean_pos_err), rel=1e-3, abs=1e-6)
+    np.testing.assert_allclose(np.asarray(r32.q), np.asarray(r64.q), atol=1e-4)
+    assert int(r32.n_steps) <= int(r64.n_steps)
+
+
+def test_mixed_precision_inputs_are_refused_by_name(free):
+    """A float32 scenario with a float64 arm, gains or joint reference is refused, naming the
+    argument (mixed, the vector field would be promoted and fail inside the solver)."""
+    sc, jref = free
+    f32 = lambda t: jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
+        x.dtype, jnp.floating) else x, t)
+    sc32, g32 = f32(sc), f32(toy_gains("osc"))
+    for kw, name in [(dict(arm=ARM, gains=g32, ik=f32(jref)), "arm"),
+                     (dict(arm=f32(ARM), gains=toy_gains("osc"), ik=f32(jref)), "gains"),
+                     (dict(arm=f32(ARM), gains=g32, ik=jref), "ik")]:
+        with pytest.raises(ValueError, match=f"^{name}: float64 arrays with a float32 scenario"):
+            simulate(kw["arm"], sc32, CTRL, kw["gains"], ik=kw["ik"])
+        with pytest.raises(ValueError, match=f"^{name}: float64"):
+            simulate_batch(kw["arm"], stack_scenarios([sc32, sc32]), CTRL, kw["gains"],
+                           ik=None if kw["ik"] is None else tuple(jnp.stack([x, x]) for x in kw["ik"]))

@@ -37,8 +37,10 @@ loop from the host in calls of 512 iterations and moves its last stragglers to a
 them as the scan of per-sample solves, which is differentiable.
 
 Default solver (``SimParams.solver="auto"``): ``Dopri5`` for trajectory runs, ``Tsit5`` for
-gradient-guided runs, both with ``rtol = 1e-5``, ``atol = 1e-7`` (SPEC U9: adaptive, non-stiff, a
-little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6). SPEC U9 proposes Tsit5 throughout; on
+gradient-guided runs, both with ``rtol = 1e-5``, ``atol = 1e-7`` in float64 (SPEC U9: adaptive,
+non-stiff, a little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6) and ``1e-4`` / ``1e-5`` in
+float32 (:data:`DEFAULT_TOLERANCES`: float64's sit at float32's rounding, where the error estimate
+is noise and the steps stop growing). SPEC U9 proposes Tsit5 throughout; on
 the study's trajectory runs Dopri5 (same 6 evaluations per step, FSAL) needs fewer steps at the same
 tolerances (``benchmarks/bench_solvers.py``, 9-DOF arm, seeds 1-4, batch maximum): warehouse
 velocity / acceleration OSC 2,212 / 2,584 against 4,118 / 4,746 steps, agriculture 2,577 / 4,921
@@ -110,18 +112,39 @@ from ._robot import Arm
 from ._scenario import Reference, Scenario
 
 __all__ = ["SimParams", "SimResult", "JointReference", "simulate", "simulate_batch", "simulate_dense",
-           "joint_reference"]
+           "joint_reference", "tolerances", "DEFAULT_TOLERANCES"]
 
 
 def _arr(x):
     return as_float(x)
 
 
+def _arr_or_none(x):
+    return None if x is None else as_float(x)
+
+
+# The step-size controller's default tolerances by the state's precision. float64: SPEC U9 (about
+# MATLAB ode113's use; benchmarks/bench_tolerance.py). float32: the float64 values sit at its
+# rounding (eps 1.2e-7), so the error estimates are rounding noise and the steps stop growing
+# (7-DOF simple, gradient-guided: 25,981 steps against 1,114 in float64); ``bench_tolerance.py
+# --float32`` gives the evidence for these.
+DEFAULT_TOLERANCES = {"float64": (1e-5, 1e-7), "float32": (1e-4, 1e-5)}
+
+
+def tolerances(params: "SimParams", dtype) -> tuple:
+    """``(rtol, atol)`` of ``params`` for states of ``dtype``: the given ones, or where None the
+    :data:`DEFAULT_TOLERANCES` of that precision (float64's for any other)."""
+    rtol, atol = DEFAULT_TOLERANCES.get(jnp.dtype(dtype).name, DEFAULT_TOLERANCES["float64"])
+    return (rtol if params.rtol is None else params.rtol), (atol if params.atol is None else params.atol)
+
+
 class SimParams(eqx.Module):
     """Options of :func:`simulate`. Numbers are arrays (changing them never recompiles); the
     choices marked static are structure.
 
-    * ``rtol``, ``atol``: tolerances of the PID step-size controller (SPEC U9: 1e-5 / 1e-7).
+    * ``rtol``, ``atol``: tolerances of the PID step-size controller; None (default): by the
+      states' precision, 1e-5 / 1e-7 in float64 (SPEC U9), 1e-4 / 1e-5 in float32
+      (:data:`DEFAULT_TOLERANCES`, :func:`tolerances`).
     * ``pcoeff``, ``icoeff``: PID coefficients (``0, 1`` = the classic I controller). Against the PI
       controllers diffrax suggests for non-smooth error estimates it takes the fewest steps over the
       study's rows (9-DOF, 6 seeds: 316k steps; (0.2, 0.4) 351k, (0.4, 0.3) 365k), though it rejects
@@ -153,8 +176,8 @@ class SimParams(eqx.Module):
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
 
-    rtol: Float[Array, ""] = eqx.field(default=1e-5, converter=_arr)
-    atol: Float[Array, ""] = eqx.field(default=1e-7, converter=_arr)
+    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
+    atol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
     pcoeff: Float[Array, ""] = eqx.field(default=0.0, converter=_arr)
     icoeff: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
     q_bound: Float[Array, ""] = eqx.field(default=100.0, converter=_arr)
@@ -193,7 +216,7 @@ class SimParams(eqx.Module):
         for name in ("max_steps_per_sample", "guidance_samples", "hold_samples", "buffer_size"):
             check_count(f"SimParams.{name}", getattr(self, name), 1)
         # the numbers, where concrete (a SimParams built under a trace is checked by its caller)
-        check_tolerances("SimParams", self.rtol, self.atol)
+        check_tolerances("SimParams", *tolerances(self, "float64"))
         for name in ("guidance_rot_radius", "lme_mu"):
             check_positive(f"SimParams.{name}", getattr(self, name), allow_zero=True)
         for name in ("goal_radius", "lme_max_jump"):
@@ -467,8 +490,9 @@ class _EvenSplit(diffrax.AbstractAdaptiveStepSizeController):
         return keep, next_t0, next_t1, made_jump, state, result
 
 
-def _pid(params: SimParams, jump_ts=None, ends=None):
-    pid = diffrax.PIDController(rtol=params.rtol, atol=params.atol, pcoeff=params.pcoeff,
+def _pid(params: SimParams, dtype, jump_ts=None, ends=None):
+    rtol, atol = tolerances(params, dtype)
+    pid = diffrax.PIDController(rtol=rtol, atol=atol, pcoeff=params.pcoeff,
                                 icoeff=params.icoeff, norm=_state_norm)
     if jump_ts is None:
         return pid
@@ -508,7 +532,8 @@ def _solve_horizon(arm, controller, gains, ref, jref, env, y0, params, save_ts=N
     saveat = diffrax.SaveAt(ts=ends if save_ts is None else save_ts, dense=dense)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vf), _make_solver(params, controller), t0=jnp.zeros((), dtype), t1=t1, dt0=ts, y0=y0,
-        saveat=saveat, stepsize_controller=_pid(params, jump_ts=jumps if N > 1 else None, ends=step_ends),
+        saveat=saveat, stepsize_controller=_pid(params, dtype, jump_ts=jumps if N > 1 else None,
+                                                ends=step_ends),
         adjoint=_make_adjoint(params), max_steps=params.max_steps_per_sample * N, throw=False)
     stats = (sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
     return sol, stats, sol.result._value
@@ -531,7 +556,7 @@ def _solve_sample(arm, controller, gains, rs, env, y, k, ts, dt0, active, params
 
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vf), _make_solver(params, controller), t0=t0, t1=t1, dt0=dt0, y0=y,
-        saveat=diffrax.SaveAt(t1=True), stepsize_controller=_pid(params),
+        saveat=diffrax.SaveAt(t1=True), stepsize_controller=_pid(params, dtype),
         adjoint=_make_adjoint(params), max_steps=_PER_SOLVE_FACTOR * params.max_steps_per_sample,
         throw=False)
     y1 = jax.tree.map(lambda x: x[-1], sol.ys)
@@ -589,7 +614,7 @@ def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params,
     dtype = scenario.goal_p.dtype
     n = arm.n_dof
     solver = _make_solver(params, controller)
-    pid = _pid(params)
+    pid = _pid(params, dtype)
     on = jnp.asarray(True)
 
     def vf(t, y, args):
@@ -913,6 +938,26 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
                          f"{scenario.reference.p.shape}")
 
 
+def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
+    """A run is integrated in its scenario's precision (float64 or float32). ``params`` (our
+    settings) is cast to it; an arm, gains or joint reference of another floating dtype is an error
+    naming it (mixed, they would promote the vector field and fail deep inside the solver). Weakly
+    typed numbers (Python scalars) take the run's precision and pass."""
+    dtype = jnp.dtype(scenario.reference.p.dtype)
+
+    def floating(x):
+        return eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)
+
+    for name, tree in (("arm", arm), ("gains", gains), ("ik", ik)):
+        other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(tree)
+                 if floating(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
+        if other:
+            raise ValueError(f"{name}: {'/'.join(sorted(other))} arrays with a {dtype.name} scenario; "
+                             f"cast them (or the scenario) to one precision")
+    cast = lambda x: x.astype(dtype) if floating(x) and x.dtype != dtype else x
+    return jax.tree.map(cast, params)
+
+
 def _with_layout(arm: Arm, scenario: Scenario, params: SimParams, batch: int) -> Scenario:
     """``scenario`` with its obstacles laid out for ``batch`` members (:func:`obstacle_layout`)."""
     return eqx.tree_at(lambda sc: sc.obstacles, scenario,
@@ -952,6 +997,7 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenario, controller, ik, batched=False)
+    params = _in_precision(arm, scenario, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
     scenario = _with_layout(arm, scenario, params, 1)
     return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
@@ -1113,6 +1159,7 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenarios, controller, ik, batched=True)
+    params = _in_precision(arm, scenarios, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     if q0 is not None and qd0 is None:
         qd0 = jnp.zeros_like(jnp.asarray(q0))
@@ -1226,6 +1273,7 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
     if params.mode != "horizon":
         params = dataclasses.replace(params, mode="horizon")
     _check_inputs(arm, scenario, controller, ik, batched=False)
+    params = _in_precision(arm, scenario, gains, ik, params)
     if controller.uses_guidance:
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
