@@ -11,9 +11,12 @@ reference's and the first candidate's include their compilations).
 
 ``--solver`` picks the candidates' solver (default the simulator's ``auto``); the reference is always
 Tsit5 at rtol 1e-9 / atol 1e-11, so a candidate solver is checked against another method.
+``--float32`` runs the candidates in single precision (the arm, scenarios, IK, gains and parameters
+cast to float32; the reference stays in float64), ``--candidates`` sets their tolerances
+(``rtol/atol`` pairs).
 
 Run: ``python benchmarks/bench_tolerance.py [--dof 9] [--seeds 1-4] [--cases ...] [--controllers ...]
-[--solver dopri5]``
+[--solver dopri5] [--float32] [--candidates 1e-5/1e-7,1e-4/1e-6]``
 """
 
 from __future__ import annotations
@@ -35,6 +38,17 @@ CANDIDATES = ((1e-5, 1e-7), (1e-4, 1e-6))
 REFERENCE = (1e-9, 1e-11)
 METRICS = ("mean_pos_err", "mean_ori_err", "final_pos_err")  # compared as relative deviations
 FLAGS = ("success", "collided", "joint_limit")  # compared seed by seed
+
+
+def to_float32(tree):
+    """Every floating-point array of ``tree`` cast to float32 (integers, booleans and the rest kept)."""
+    f32 = lambda x: x.astype(np.float32) if hasattr(x, "dtype") and np.issubdtype(x.dtype, np.floating) else x
+    return jax.tree.map(f32, tree)
+
+
+def parse_candidates(text: str) -> tuple:
+    """``"1e-5/1e-7,1e-4/1e-6"`` -> ``((1e-5, 1e-7), (1e-4, 1e-6))``."""
+    return tuple(tuple(float(v) for v in pair.split("/")) for pair in text.split(","))
 
 
 def max_rel_dev(a, b):
@@ -95,27 +109,34 @@ def main():
     ap.add_argument("--solver", default=SimParams().solver, help="the candidates' solver")
     ap.add_argument("--ref-budget", type=int, default=256,
                     help="reference step budget per sample (max_steps = samples x this)")
+    ap.add_argument("--float32", action="store_true", help="run the candidates in float32")
+    ap.add_argument("--candidates", default=",".join(f"{r:g}/{a:g}" for r, a in CANDIDATES),
+                    help="the candidates' tolerances, rtol/atol pairs")
     args = ap.parse_args()
+    candidates = parse_candidates(args.candidates)
+    cast = to_float32 if args.float32 else (lambda tree: tree)
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
-    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}; candidates {args.solver}; "
+    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}; candidates {args.solver}"
+          f"{' in float32' if args.float32 else ''}; "
           f"reference tsit5 rtol/atol {REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}")
     print(f"{'case':12s} {'controller':13s} {'rtol/atol':>11s} {'steps':>7s} {'wall s':>7s} "
           f"{'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} | seed means: {'pos':>8s} {'ori':>8s} {'final':>8s} flags")
-    worst = {c: 0.0 for c in CANDIDATES}
-    worst_mean = {c: 0.0 for c in CANDIDATES}
+    worst = {c: 0.0 for c in candidates}
+    worst_mean = {c: 0.0 for c in candidates}
     for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
             arm, args.cases.split(","), args.controllers.split(","), seeds):
         runs = {}
-        for rtol, atol in (REFERENCE,) + CANDIDATES:
-            if (rtol, atol) == REFERENCE:
-                p = reference_params(args.ref_budget)
+        for i, (rtol, atol) in enumerate((REFERENCE,) + candidates):
+            if i == 0:
+                p, c = reference_params(args.ref_budget), (lambda tree: tree)
             else:
-                p = SimParams(rtol=rtol, atol=atol, solver=args.solver)
+                p, c = SimParams(rtol=rtol, atol=atol, solver=args.solver), cast
             t0 = time.perf_counter()
-            res = jax.block_until_ready(rj.simulate_batch(arm, scen, ctrl, gains, ik=ikarg, params=p))
-            runs[(rtol, atol)] = (res, time.perf_counter() - t0)
-        ref = runs[REFERENCE][0].metrics
+            res = jax.block_until_ready(rj.simulate_batch(c(arm), c(scen), ctrl, c(gains), ik=c(ikarg),
+                                                          params=c(p)))
+            runs[(rtol, atol) if i else "ref"] = (res, time.perf_counter() - t0)
+        ref = runs["ref"][0].metrics
         ref_ok = reference_complete(ref)
         if not ref_ok:  # the reference ran out of its step budget (or diverged): no evidence
             print(f"{case:12s} {name:13s} reference incomplete for seeds "
@@ -128,7 +149,8 @@ def main():
             if key in worst and ref_ok:
                 worst[key] = max(worst[key], *devs)
                 worst_mean[key] = max(worst_mean[key], *mdevs)
-            print(f"{case:12s} {name:13s} {key[0]:.0e}/{key[1]:.0e} {int(np.max(res.n_steps)):7d} "
+            tol = "reference" if key == "ref" else f"{key[0]:.0e}/{key[1]:.0e}"
+            print(f"{case:12s} {name:13s} {tol:>11s} {int(np.max(res.n_steps)):7d} "
                   f"{wall:7.2f} {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} | {mdevs[0]:20.1e} {mdevs[1]:8.1e} "
                   f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'}",
                   flush=True)
