@@ -940,7 +940,7 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
 
 def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
     """A run is integrated in its scenario's precision (float64 or float32). ``params`` (our
-    settings) is cast to it; an arm, gains or joint reference of another floating dtype is an error
+    settings) gets that precision's default tolerances where None and is cast to it; an arm, gains or joint reference of another floating dtype is an error
     naming it (mixed, they would promote the vector field and fail deep inside the solver). Weakly
     typed numbers (Python scalars) take the run's precision and pass."""
     dtype = jnp.dtype(scenario.reference.p.dtype)
@@ -954,6 +954,8 @@ def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
         if other:
             raise ValueError(f"{name}: {'/'.join(sorted(other))} arrays with a {dtype.name} scenario; "
                              f"cast them (or the scenario) to one precision")
+    if params.rtol is None or params.atol is None:  # arguments of the compiled run, not constants
+        params = dataclasses.replace(params, **dict(zip(("rtol", "atol"), tolerances(params, dtype))))
     cast = lambda x: x.astype(dtype) if floating(x) and x.dtype != dtype else x
     return jax.tree.map(cast, params)
 
