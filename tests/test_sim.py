@@ -572,13 +572,17 @@ def test_default_tolerances_follow_the_state_precision():
         SimParams(atol=-1.0)
 
 
+def f32(tree):
+    """Every floating-point array of ``tree`` cast to float32."""
+    return jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
+        x.dtype, jnp.floating) else x, tree)
+
+
 def test_float32_run_matches_float64_in_as_many_steps(free):
     """The same run with every input cast to float32 (default tolerances): its errors agree with
     float64's to float32's level and it takes no more steps. Before the even split kept clipped
     steps and the float32 tolerances, it took 10x the steps (halved toward every sample end)."""
     sc, jref = free
-    f32 = lambda t: jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
-        x.dtype, jnp.floating) else x, t)
     r64 = run(sc, jref)
     r32 = simulate(f32(ARM), f32(sc), CTRL, f32(toy_gains("osc")), ik=f32(jref))  # params: cast inside
     assert r32.q.dtype == jnp.float32 and not bool(r32.diverged)
@@ -592,8 +596,6 @@ def test_mixed_precision_inputs_are_refused_by_name(free):
     """A float32 scenario with a float64 arm, gains or joint reference is refused, naming the
     argument (mixed, the vector field would be promoted and fail inside the solver)."""
     sc, jref = free
-    f32 = lambda t: jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
-        x.dtype, jnp.floating) else x, t)
     sc32, g32 = f32(sc), f32(toy_gains("osc"))
     for kw, name in [(dict(arm=ARM, gains=g32, ik=f32(jref)), "arm"),
                      (dict(arm=f32(ARM), gains=toy_gains("osc"), ik=f32(jref)), "gains"),

@@ -135,7 +135,8 @@ def tolerances(params: "SimParams", dtype) -> tuple:
     """``(rtol, atol)`` of ``params`` for states of ``dtype``: the given ones, or where None the
     :data:`DEFAULT_TOLERANCES` of that precision (float64's for any other)."""
     rtol, atol = DEFAULT_TOLERANCES.get(jnp.dtype(dtype).name, DEFAULT_TOLERANCES["float64"])
-    return (rtol if params.rtol is None else params.rtol), (atol if params.atol is None else params.atol)
+    return (rtol if params.rtol is None else params.rtol,
+            atol if params.atol is None else params.atol)
 
 
 class SimParams(eqx.Module):
@@ -481,9 +482,9 @@ class _EvenSplit(diffrax.AbstractAdaptiveStepSizeController):
         even = next_t0 + rem / jnp.maximum(n, 1.0)
         # A step the clip ends one float before b (``prevbefore(b)``) reaches b: never split it.
         # Otherwise, once that float is more than 1e-6 of the step (float32: any step under 2 ms
-        # at t = 0.02 s; float64: under about 2e-9 s at t = 10 s), the margin above makes two pieces, and every
-        # halving makes the next one certain (7-DOF simple, velocity OSC, float32: 16,578 steps
-        # against 3,568 with this check).
+        # at t = 0.02 s; float64: under about 2e-9 s at t = 10 s), the margin above makes two
+        # pieces, and every halving makes the next one certain (7-DOF simple, velocity OSC,
+        # float32: 16,578 steps against 3,568 with this check).
         reaches = b - next_t1 <= 4 * jnp.finfo(b.dtype).eps * jnp.abs(b)
         split = finite & (h > 0) & (rem > h) & (b > next_t0) & ~reaches
         next_t1 = jnp.where(split, jnp.minimum(next_t1, even), next_t1)
@@ -940,9 +941,10 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
 
 def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
     """A run is integrated in its scenario's precision (float64 or float32). ``params`` (our
-    settings) gets that precision's default tolerances where None and is cast to it; an arm, gains or joint reference of another floating dtype is an error
-    naming it (mixed, they would promote the vector field and fail deep inside the solver). Weakly
-    typed numbers (Python scalars) take the run's precision and pass."""
+    settings) gets that precision's default tolerances where None and is cast to it; an arm, gains
+    or joint reference of another floating dtype is an error naming it (mixed, they would promote
+    the vector field and fail deep inside the solver). Weakly typed numbers (Python scalars) take
+    the run's precision and pass."""
     dtype = jnp.dtype(scenario.reference.p.dtype)
 
     def floating(x):
