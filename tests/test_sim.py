@@ -530,9 +530,9 @@ def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():
 def test_even_split_keeps_a_step_the_clip_ends_at_the_sample_end(dtype):
     """The even split (``_EvenSplit``) never splits a step that the jump clip ends one float before
     the sample end: it reaches the end. In float32 the 1e-6 margin of its piece count is smaller
-    than that float relative to the step, and the step used to be halved again and again (16,578
-    against 1,662 steps, 7-DOF simple, velocity OSC). A step well short of the end is still
-    split evenly."""
+    than that float relative to the step, and the step used to be halved again and again (7-DOF
+    simple, velocity OSC, float32: 16,578 steps, 3,568 with the check). A step well short of the
+    end is still split evenly."""
     from redman_jax._sim import _pid, _Y, tolerances
 
     ts = jnp.asarray(0.01, dtype)
