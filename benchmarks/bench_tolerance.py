@@ -40,12 +40,6 @@ METRICS = ("mean_pos_err", "mean_ori_err", "final_pos_err")  # compared as relat
 FLAGS = ("success", "collided", "joint_limit")  # compared seed by seed
 
 
-def to_float32(tree):
-    """Every floating-point array of ``tree`` cast to float32 (integers, booleans and the rest kept)."""
-    f32 = lambda x: x.astype(np.float32) if hasattr(x, "dtype") and np.issubdtype(x.dtype, np.floating) else x
-    return jax.tree.map(f32, tree)
-
-
 def parse_candidates(text: str) -> tuple:
     """``"1e-5/1e-7,1e-4/1e-6"`` -> ``((1e-5, 1e-7), (1e-4, 1e-6))``."""
     return tuple(tuple(float(v) for v in pair.split("/")) for pair in text.split(","))
@@ -114,7 +108,7 @@ def main():
                     help="the candidates' tolerances, rtol/atol pairs")
     args = ap.parse_args()
     candidates = parse_candidates(args.candidates)
-    cast = to_float32 if args.float32 else (lambda tree: tree)
+    cast = (lambda tree: rj.cast_floating(tree, np.float32)) if args.float32 else (lambda tree: tree)
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
     print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}; candidates {args.solver}"

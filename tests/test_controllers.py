@@ -485,9 +485,9 @@ def test_registry_and_interface():
 
 def test_every_controller_runs_in_float32():
     """float32 smoke: every controller, jitted, gives finite float32 torques."""
-    f32 = lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x
-    arm = jax.tree.map(f32, ARM)
-    obs = jax.tree.map(f32, rj.make_obstacles(spheres=[(np.eye(3), [0.3, 0.25, 0.95], [0.06])]))
+    f32 = lambda tree: rj.cast_floating(tree, jnp.float32)
+    arm = f32(ARM)
+    obs = f32(rj.make_obstacles(spheres=[(np.eye(3), [0.3, 0.25, 0.95], [0.06])]))
     q = jnp.asarray(Q_START, jnp.float32)
     p, quat = rj.end_effector_pose(arm, q)
     env = make_environment(obs, p + 0.1, quat)
@@ -496,8 +496,8 @@ def test_every_controller_runs_in_float32():
                     q=q + 0.01, qd=zn, qdd=zn)
     for name in CONTROLLERS:
         ctrl = make_controller(name)
-        gains = jax.tree.map(f32, ctrl.default_gains())
-        st = ControlState(t=jnp.zeros((), jnp.float32), q=q, qd=zn, z=jax.tree.map(f32, ctrl.init_state(arm, q, zn)))
+        gains = f32(ctrl.default_gains())
+        st = ControlState(t=jnp.zeros((), jnp.float32), q=q, qd=zn, z=f32(ctrl.init_state(arm, q, zn)))
         out = jax.jit(lambda g, s: ctrl(g, arm, s, ref, env))(gains, st)
         assert out.tau.dtype == jnp.float32
         assert bool(jnp.all(jnp.isfinite(out.tau)))

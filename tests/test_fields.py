@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from redman_jax._math import cast_floating
 from redman_jax._fields import (
     FieldParams,
     guidance_velocity,
@@ -482,8 +483,7 @@ def test_points_and_scenario_batches(rng):
 
 def test_float32_runs():
     obs, goal, vp, vm = _field_inputs()
-    f32 = lambda t: jax.tree.map(
-        lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
+    f32 = lambda t: cast_floating(t, jnp.float32)
     x = jnp.array([[0.0, -0.3, 1.0]])
     p = FieldParams()
     g64 = _tg_v(x, goal, obs, vp, vm, p)

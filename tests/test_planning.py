@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from redman_jax._math import cast_floating
 from redman_jax._obstacles import make_obstacles, obstacle_distances, stack_obstacles
 from redman_jax._planning import (
     RRTParams,
@@ -350,8 +351,7 @@ def test_rrt_star_rewiring_keeps_an_exact_cost_tree(planned):
 
 def test_float32_runs():
     obs, start, goal = _simple_scene(1)
-    f32 = lambda t: jax.tree.map(
-        lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
+    f32 = lambda t: cast_floating(t, jnp.float32)
     ref, ok = jax.jit(rrt_reference, static_argnums=7)(
         jax.random.PRNGKey(0), f32(obs), jnp.asarray(start, jnp.float32),
         jnp.asarray(goal, jnp.float32), jnp.asarray(QUAT, jnp.float32), ROT_RADIUS, TS, CAPACITY,

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import redman_jax  # noqa: F401  (x64)
+import redman_jax  # x64, and cast_floating
 from redman_jax._control_types import AbstractController, ControlOutput
 from redman_jax._dynamics import dynamics_terms
 from redman_jax._kinematics import jacobian, jacobian_from, jdot_qdot, kinematics, end_effector_pose
@@ -573,9 +573,7 @@ def test_default_tolerances_follow_the_state_precision():
 
 
 def f32(tree):
-    """Every floating-point array of ``tree`` cast to float32."""
-    return jax.tree.map(lambda x: x.astype(jnp.float32) if eqx.is_array(x) and jnp.issubdtype(
-        x.dtype, jnp.floating) else x, tree)
+    return redman_jax.cast_floating(tree, jnp.float32)
 
 
 def test_float32_run_matches_float64_in_as_many_steps(free):

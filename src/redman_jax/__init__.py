@@ -168,6 +168,7 @@ from ._ik import (
     validate_ik as validate_ik,
     validated_scenarios as validated_scenarios,
 )
+from ._math import cast_floating as cast_floating
 from ._sim import (
     SimParams as SimParams,
     SimResult as SimResult,

@@ -32,6 +32,8 @@ __all__ = [
     "clip_norm",
     "safe_norm",
     "as_float",
+    "is_floating_array",
+    "cast_floating",
 ]
 
 
@@ -183,6 +185,20 @@ def as_float(x):
     if jnp.issubdtype(x.dtype, jnp.bool_):
         return x
     return x.astype(jnp.result_type(float))
+
+
+def is_floating_array(x) -> bool:
+    """Whether ``x`` is an array (JAX, traced or NumPy) of a floating-point dtype."""
+    return isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.floating)
+
+
+def cast_floating(tree, dtype):
+    """``tree`` with every floating-point array cast to ``dtype`` (integer and boolean arrays and
+    non-array leaves kept): an arm, scenario, gains or IK result in one precision, for example
+    ``cast_floating(arm, jnp.float32)`` to run in float32 with float64 enabled."""
+    dtype = jnp.dtype(dtype)
+    return jax.tree.map(lambda x: x.astype(dtype) if is_floating_array(x) and x.dtype != dtype else x,
+                        tree)
 
 
 def check_finite_fields(module) -> None:

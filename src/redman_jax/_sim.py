@@ -95,7 +95,8 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
-from ._math import as_float, check_count, check_positive, check_tolerances, concrete
+from ._math import (as_float, cast_floating, check_count, check_positive, check_tolerances, concrete,
+                    is_floating_array)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -947,20 +948,15 @@ def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
     the vector field and fail deep inside the solver). Weakly typed numbers (Python scalars) take
     the run's precision and pass."""
     dtype = jnp.dtype(scenario.reference.p.dtype)
-
-    def floating(x):
-        return eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)
-
     for name, tree in (("arm", arm), ("gains", gains), ("ik", ik)):
         other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(tree)
-                 if floating(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
+                 if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
         if other:
             raise ValueError(f"{name}: {'/'.join(sorted(other))} arrays with a {dtype.name} scenario; "
                              f"cast them (or the scenario) to one precision")
     if params.rtol is None or params.atol is None:  # arguments of the compiled run, not constants
         params = dataclasses.replace(params, **dict(zip(("rtol", "atol"), tolerances(params, dtype))))
-    cast = lambda x: x.astype(dtype) if floating(x) and x.dtype != dtype else x
-    return jax.tree.map(cast, params)
+    return cast_floating(params, dtype)
 
 
 def _with_layout(arm: Arm, scenario: Scenario, params: SimParams, batch: int) -> Scenario:
