@@ -19,7 +19,7 @@ import pytest
 
 import redman_jax._pipeline as pipe
 from redman_jax._cli import main, parse_int_list
-from redman_jax._store import UnitStore, atomic_write_text
+from redman_jax._store import UnitStore, atomic_write_text, json_ready
 from redman_jax._study import SweepConfig, load_runs, run_sweep
 
 
@@ -130,6 +130,24 @@ def test_cli_help_exits_cleanly():
     assert proc.returncode == 0
     for opt in ("--arms", "--cases", "--seeds", "--controllers", "--gains", "--ts", "--solver", "--out"):
         assert opt in proc.stdout
+
+
+def test_json_ready_writes_strict_json():
+    """Rows hold NaN (a time a controller does not have) and inf (no time to goal): strict JSON
+    has neither, so they become null; NumPy scalars and arrays become plain numbers and lists."""
+    row = {"t_ik_per_sample": float("nan"), "time_to_goal": np.float64(np.inf), "n_steps": np.int64(7),
+           "success": np.bool_(True), "seed": 3, "case": "simple", "p": np.array([1.0, -np.inf]),
+           "nested": {"x": (np.float32(0.5), -np.inf)}}
+    text = json.dumps(json_ready(row), allow_nan=False)
+
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    back = json.loads(text, parse_constant=refuse)
+    assert back == {"t_ik_per_sample": None, "time_to_goal": None, "n_steps": 7, "success": True,
+                    "seed": 3, "case": "simple", "p": [1.0, None], "nested": {"x": [0.5, None]}}
+    with pytest.raises(ValueError):  # what the demo wrote before: Python's NaN token
+        json.dumps(row["t_ik_per_sample"], allow_nan=False)
 
 
 def test_atomic_store_roundtrip_and_key(tmp_path):
@@ -519,3 +537,22 @@ def test_worker_xla_flags_keep_what_the_user_set(monkeypatch):
     with _study._worker_xla_flags(extra):
         assert "XLA_FLAGS" not in os.environ
     assert "XLA_FLAGS" not in os.environ
+
+
+@pytest.mark.slow
+def test_demo_writes_its_figures_and_a_strict_json_summary(tmp_path):
+    """``redman-jax demo`` end to end (about 30 s on 2 cores): the figures, and a summary that
+    strict JSON parsers read (a joint-space run has no LME time and no time to goal: null)."""
+    from redman_jax._demo import run_demo
+
+    summary = run_demo("7", "inspection", 1, "joint_space", tmp_path, animation=False)
+    for name in ("scene.png", "errors.png", "summary.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    back = json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse)
+    assert back == summary
+    assert back["controller"] == "joint_space" and back["t_lme_per_sample"] is None
+    assert back["n_samples"] > 0 and np.isfinite(back["mean_pos_error"])

@@ -155,6 +155,11 @@ def test_gains_json_roundtrip_and_validation(tmp_path):
     v = get_gains(g, ("kp", "kd"))
     g2 = set_gains(g, ("kp", "kd"), 2 * v)
     assert float(g2.kp) == 800.0 and float(g2.kd) == 80.0
+    # a diverged tuning is refused when written, naming the gain, and nothing is written
+    bad = tmp_path / "diverged.json"
+    with pytest.raises(ValueError, match=r"acceleration\.kd must be finite"):
+        write_gains_json(bad, {"acceleration": {"kp": 400.0, "kd": float("nan")}})
+    assert not bad.exists()
 
 
 def test_bad_inputs_raise_naming_the_field():

@@ -6,7 +6,8 @@ Generates and IK-validates one scenario, simulates one controller on it, and wri
   arm at its final configuration;
 * ``errors.png``: position and orientation error per sample, with the orientation switch;
 * ``animation.gif`` (unless ``--no-animation``): the arm moving through the scene;
-* ``summary.json``: the run's metrics.
+* ``summary.json``: the run's metrics (strict JSON: a value that is not a finite number, such as
+  the IK time of a controller that uses none, is ``null``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from ._store import json_ready
 
 __all__ = ["run_demo", "demo_cli"]
 
@@ -77,8 +80,8 @@ def run_demo(arm_spec: str = "9", case: str = "simple", seed: int = 1, controlle
 
     if animation:
         _animate(arm, scen, q_traj[:n], out / "animation.gif")
-    summary = {k: (v.item() if hasattr(v, "item") else v) for k, v in row.items()}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    summary = json_ready(dict(row))
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str, allow_nan=False))
     return summary
 
 
@@ -119,5 +122,5 @@ def _animate(arm, scen, q_traj, path: Path, frames: int = 40) -> None:
 def demo_cli(args) -> None:
     summary = run_demo(args.arm, args.case, args.seed, args.controller, args.out,
                        animation=not args.no_animation)
-    print(json.dumps(summary, indent=2, default=str))
+    print(json.dumps(summary, indent=2, default=str, allow_nan=False))
     print(f"figures written to {args.out}/")

@@ -52,6 +52,23 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
+def json_ready(obj: Any) -> Any:
+    """``obj`` with NumPy scalars and arrays made plain Python and every non-finite float made
+    ``None``, so that ``json.dumps(..., allow_nan=False)`` writes strict JSON (``null`` where Python's
+    default would write the ``NaN`` and ``Infinity`` tokens that strict parsers reject)."""
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
 def config_hash(obj: Any) -> str:
     """Stable short hash of a JSON-serialisable configuration."""
     blob = json.dumps(obj, sort_keys=True, default=str).encode()

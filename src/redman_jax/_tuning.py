@@ -495,10 +495,16 @@ def gains_to_dict(gains, fields) -> dict:
 
 
 def write_gains_json(path, tuned: dict) -> Path:
-    """Write ``{controller_name: {gain_field: value}}`` (what the study's ``--gains`` reads)."""
+    """Write ``{controller_name: {gain_field: value}}`` (what the study's ``--gains`` reads).
+    A value that is not a finite number (a tuning that diverged) is refused, naming it: the study
+    would refuse it on reading, and JSON has no NaN."""
     path = Path(path)
+    for ctrl, gains in tuned.items():
+        for k, v in gains.items():
+            if not math.isfinite(float(v)):
+                raise ValueError(f"write_gains_json: {ctrl}.{k} must be finite, got {v!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(tuned, indent=2, sort_keys=True))
+    path.write_text(json.dumps(tuned, indent=2, sort_keys=True, allow_nan=False))
     return path
 
 
