@@ -30,7 +30,7 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
-from ._math import as_float, check_count, check_positive, check_tolerances
+from ._math import as_float, check_count, check_positive, check_tolerances, resolve_tolerances
 from ._math import safe_norm
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
@@ -152,10 +152,16 @@ def _arr(x):
     return as_float(x)
 
 
+def _arr_or_none(x):
+    return None if x is None else as_float(x)
+
+
 class PerfectParams(eqx.Module):
     """Options of the perfect-controller ODE. Arrays: guidance speed ``a`` [m/s] and slow-down
     distance ``b`` [m] (3.18, [T] 0.5 / 0.1), ``ts`` [s], estimator ``mu`` and ``max_jump`` [m]
-    (U8), success ``radius`` [m], tolerances ``rtol``/``atol``; ``field``: :class:`FieldParams`.
+    (U8), success ``radius`` [m], tolerances ``rtol``/``atol`` (None, the default: by the point's
+    precision, 1e-5 / 1e-7 in float64, 1e-4 / 1e-5 in float32, as ``SimParams``;
+    :data:`~redman_jax._math.DEFAULT_TOLERANCES`); ``field``: :class:`FieldParams`.
     Static: ``n_samples`` (600 = 6 s), ``hold_samples`` (100 = 1 s), ``buffer_size`` (20),
     ``estimator`` (False gives plain gradient descent, for comparison) and
     ``max_steps_per_sample``."""
@@ -166,8 +172,8 @@ class PerfectParams(eqx.Module):
     mu: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
     max_jump: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
     radius: Float[Array, ""] = eqx.field(default=0.10, converter=_arr)
-    rtol: Float[Array, ""] = eqx.field(default=1e-5, converter=_arr)
-    atol: Float[Array, ""] = eqx.field(default=1e-7, converter=_arr)
+    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
+    atol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
     field: FieldParams = eqx.field(default_factory=FieldParams)
     n_samples: int = eqx.field(static=True, default=600)
     hold_samples: int = eqx.field(static=True, default=100)
@@ -179,7 +185,7 @@ class PerfectParams(eqx.Module):
         for name in ("a", "b", "ts", "max_jump", "radius"):
             check_positive(f"PerfectParams.{name}", getattr(self, name))
         check_positive("PerfectParams.mu", self.mu, allow_zero=True)
-        check_tolerances("PerfectParams", self.rtol, self.atol)
+        check_tolerances("PerfectParams", *resolve_tolerances(self.rtol, self.atol, "float64"))
         for name, least in (("n_samples", 1), ("hold_samples", 1), ("buffer_size", 1),
                             ("max_steps_per_sample", 1)):
             check_count(f"PerfectParams.{name}", getattr(self, name), least)
@@ -236,7 +242,8 @@ def _perfect_core(x0, goal_p, obs, params: PerfectParams) -> PerfectResult:
 
     term = diffrax.ODETerm(vf)
     solver = diffrax.Tsit5()
-    pid = diffrax.PIDController(rtol=params.rtol, atol=params.atol)
+    rtol, atol = resolve_tolerances(params.rtol, params.atol, dtype)
+    pid = diffrax.PIDController(rtol=rtol, atol=atol)
 
     def body(carry, k):
         x, buf, dt0 = carry

@@ -242,6 +242,22 @@ def check_positive(name: str, x, allow_zero: bool = False, allow_inf: bool = Fal
         raise ValueError(f"{name}: expected a {'' if allow_inf else 'finite '}{kind} value{extra}, got {v}")
 
 
+# An adaptive step-size controller's default tolerances by the state's precision. float64: SPEC U9
+# (about MATLAB ode113's use; benchmarks/bench_tolerance.py). float32: the float64 values sit at its
+# rounding (eps 1.2e-7), so the error estimates are rounding noise and the steps stop growing
+# (7-DOF simple, gradient-guided, a float64 scene cast to float32: 25,981 steps at float64's
+# values, 1,590 at these, 1,114 in float64); ``bench_tolerance.py --float32`` gives the evidence
+# for these. Used by ``SimParams`` and ``PerfectParams`` where their tolerances are None.
+DEFAULT_TOLERANCES = {"float64": (1e-5, 1e-7), "float32": (1e-4, 1e-5)}
+
+
+def resolve_tolerances(rtol, atol, dtype) -> tuple:
+    """``(rtol, atol)``: the given ones, or where None the :data:`DEFAULT_TOLERANCES` of ``dtype``'s
+    precision (float64's for any other)."""
+    r, a = DEFAULT_TOLERANCES.get(np.dtype(dtype).name, DEFAULT_TOLERANCES["float64"])
+    return (r if rtol is None else rtol, a if atol is None else atol)
+
+
 def check_tolerances(owner: str, rtol, atol) -> None:
     """An adaptive solver's ``rtol`` and ``atol``, where concrete: finite, non-negative, not both
     zero (no step would ever be accepted)."""

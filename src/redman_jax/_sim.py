@@ -95,8 +95,8 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
-from ._math import (as_float, cast_floating, check_count, check_positive, check_tolerances, concrete,
-                    is_floating_array)
+from ._math import (DEFAULT_TOLERANCES, as_float, cast_floating, check_count, check_positive,
+                    check_tolerances, concrete, is_floating_array, resolve_tolerances)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -124,21 +124,10 @@ def _arr_or_none(x):
     return None if x is None else as_float(x)
 
 
-# The step-size controller's default tolerances by the state's precision. float64: SPEC U9 (about
-# MATLAB ode113's use; benchmarks/bench_tolerance.py). float32: the float64 values sit at its
-# rounding (eps 1.2e-7), so the error estimates are rounding noise and the steps stop growing
-# (7-DOF simple, gradient-guided, a float64 scene cast to float32: 25,981 steps at float64's
-# values, 1,590 at these, 1,114 in float64); ``bench_tolerance.py --float32`` gives the evidence
-# for these.
-DEFAULT_TOLERANCES = {"float64": (1e-5, 1e-7), "float32": (1e-4, 1e-5)}
-
-
 def tolerances(params: "SimParams", dtype) -> tuple:
     """``(rtol, atol)`` of ``params`` for states of ``dtype``: the given ones, or where None the
     :data:`DEFAULT_TOLERANCES` of that precision (float64's for any other)."""
-    rtol, atol = DEFAULT_TOLERANCES.get(jnp.dtype(dtype).name, DEFAULT_TOLERANCES["float64"])
-    return (rtol if params.rtol is None else params.rtol,
-            atol if params.atol is None else params.atol)
+    return resolve_tolerances(params.rtol, params.atol, jnp.dtype(dtype))
 
 
 class SimParams(eqx.Module):
