@@ -12,8 +12,9 @@ Two controllers are registered: ``gradient`` (the default, form "minus") and ``g
 (``GradientGains(field=FieldParams(form="plus"))``; everything else identical, including the
 null-space obstacle policy of 3.34, which keeps its own default form). Both run on the three
 point-to-point cases (agriculture, warehouse, simple) x arms x seeds through the study machinery
-(resumable), and the script prints successes, collisions, mean time to goal and final distance per
-case and form beside the thesis's successes.
+(resumable), and the script prints successes, collisions, diverged runs (and of them those that
+used up the step budget, whose outcome the budget decided), mean time to goal and final distance
+per case and form beside the thesis's successes.
 
     .venv/bin/python sweeps/ablation_obstacle_form.py --out results_ablation_form
 """
@@ -57,12 +58,21 @@ def register() -> None:
     rj.CONTROLLERS["gradient_plus"] = GradientPlus
 
 
+def out_of_steps_budget() -> int:
+    """The step budget of a gradient-guided run (``SimParams``' steps per sample times its horizon in
+    samples): a run that takes this many steps ran out of it."""
+    from redman_jax._sim import SimParams
+
+    p = SimParams()
+    return p.max_steps_per_sample * p.guidance_samples
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     from redman_jax._report import THESIS_GRADIENT_SUCCESS
     from redman_jax._study import load_runs, run_sweep
 
-    from _table import ablation_config, markdown, summarise
+    from _table import _num, ablation_config, markdown, summarise, valid_runs
 
     register()
     cfg = ablation_config(args, VARIANTS, GRADIENT_CASES)
@@ -71,6 +81,11 @@ def main(argv=None) -> int:
     rows = load_runs(out)
 
     stats = summarise(rows, lambda r: (r["case"], r["controller"]))
+    budget = out_of_steps_budget()
+    spent = {}  # runs that used up the step budget (flagged diverged: the budget decided them)
+    for r in valid_runs(rows):
+        if _num(r.get("n_steps")) >= budget:
+            spent[(r["case"], r["controller"])] = spent.get((r["case"], r["controller"]), 0) + 1
     lines = []
     for case in cases:
         for ctrl, form in VARIANTS.items():
@@ -78,10 +93,12 @@ def main(argv=None) -> int:
             if s is None:
                 continue
             thesis = THESIS_GRADIENT_SUCCESS.get(case)
-            lines.append([case, form, f"{s['success']}/{s['runs']}", s["collided"], s["diverged"],
+            lines.append([case, form, f"{s['success']}/{s['runs']}", s["collided"],
+                          f"{s['diverged']} ({spent.get((case, ctrl), 0)})",
                           s["time_to_goal_s"], s["final_pos_error_mm"],
                           f"{thesis[0]}/{thesis[1]}" if thesis and len(cfg.arms) == 3 else "–"])
-    print(markdown(["case", "form", "success", "collided", "diverged", "time to goal [s] (successes)",
+    print(markdown(["case", "form", "success", "collided", f"diverged (of them out of the {budget:,}-step budget)",
+                    "time to goal [s] (successes)",
                     "final distance [mm] (all)", "thesis success (3 arms)"], lines))
     per_arm = summarise(rows, lambda r: (r["arm"], r["controller"]))
     print()
