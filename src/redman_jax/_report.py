@@ -539,6 +539,9 @@ def _claims_r2(d: StudyData) -> list[Claim]:
         if case == "warehouse":
             why += " (thesis per arm: 7dof 0/20, 8dof 2/20, 9dof 0/20)"
         why += _field_shift_note(rows)
+        if case == "agriculture":  # the study's field is always the default form (--gains sets scalars)
+            why += ("; the guidance field in the continuous 'minus' form of 2.38 (SPEC E4); the literal "
+                    "'plus' form of 3.8/3.9 is run by sweeps/ablation_obstacle_form.py")
         out.append(Claim(cid, stmt, thesis, f"{k}/{n} ({100 * k / n:.0f} %)", _v(lo <= p_t <= hi), why))
     fails = [r for r in grows if run_cause(r) != "success"]
     n_coll = sum(run_cause(r) == "collision" for r in fails)
