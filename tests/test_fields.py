@@ -282,7 +282,7 @@ def test_points_min_distance_equals_per_point_minimum(rng):
     np.testing.assert_allclose(np.asarray(f(obs, jnp.asarray(xs))), ref, rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(np.asarray(f(pad_obstacles(obs, (5, 5, 5)), jnp.asarray(xs))), ref,
                                rtol=1e-13, atol=1e-15)
-    obs32 = jax.tree.map(lambda t: t.astype(jnp.float32) if t.dtype == jnp.float64 else t, obs)
+    obs32 = cast_floating(obs, jnp.float32)
     d32 = np.asarray(f(obs32, jnp.asarray(xs, jnp.float32)))
     assert d32.dtype == np.float32
     np.testing.assert_allclose(d32, ref, atol=1e-5)

@@ -397,8 +397,7 @@ def test_poi_jacobian_transpose_matches_point_jacobians(name, request, rng):
         planes = tuple(jnp.asarray(f[:, c]) for c in range(3))
         np.testing.assert_allclose(np.asarray(poi_jacobian_transpose(arm, kin, pois, planes)), h,
                                    rtol=0, atol=0)
-    arm32 = jax.tree.map(lambda x: x.astype(jnp.float32) if isinstance(x, jax.Array)
-                         and jnp.issubdtype(x.dtype, jnp.floating) else x, arm)
+    arm32 = rj.cast_floating(arm, jnp.float32)
     q32 = jnp.asarray(q, jnp.float32)
     kin32 = rj.kinematics(arm32, q32)
     h32 = poi_jacobian_transpose(arm32, kin32, rj.poi_positions_from(arm32, kin32, q32), jnp.asarray(f, jnp.float32))
