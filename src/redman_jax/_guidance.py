@@ -30,8 +30,8 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
-from ._math import as_float, check_count, check_positive, check_tolerances, resolve_tolerances
-from ._math import safe_norm
+from ._math import (as_float, as_float_or_none, check_count, check_positive, check_tolerances,
+                    resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
 
@@ -152,10 +152,6 @@ def _arr(x):
     return as_float(x)
 
 
-def _arr_or_none(x):
-    return None if x is None else as_float(x)
-
-
 class PerfectParams(eqx.Module):
     """Options of the perfect-controller ODE. Arrays: guidance speed ``a`` [m/s] and slow-down
     distance ``b`` [m] (3.18, [T] 0.5 / 0.1), ``ts`` [s], estimator ``mu`` and ``max_jump`` [m]
@@ -172,8 +168,8 @@ class PerfectParams(eqx.Module):
     mu: Float[Array, ""] = eqx.field(default=1e-6, converter=_arr)
     max_jump: Float[Array, ""] = eqx.field(default=2.0, converter=_arr)
     radius: Float[Array, ""] = eqx.field(default=0.10, converter=_arr)
-    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
-    atol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
+    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
+    atol: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
     field: FieldParams = eqx.field(default_factory=FieldParams)
     n_samples: int = eqx.field(static=True, default=600)
     hold_samples: int = eqx.field(static=True, default=100)

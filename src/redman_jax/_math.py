@@ -32,6 +32,7 @@ __all__ = [
     "clip_norm",
     "safe_norm",
     "as_float",
+    "as_float_or_none",
     "is_floating_array",
     "cast_floating",
 ]
@@ -185,6 +186,12 @@ def as_float(x):
     if jnp.issubdtype(x.dtype, jnp.bool_):
         return x
     return x.astype(jnp.result_type(float))
+
+
+def as_float_or_none(x):
+    """:func:`as_float`, keeping ``None`` (a field whose default is resolved later, e.g. tolerances
+    by the run's precision, :func:`resolve_tolerances`)."""
+    return None if x is None else as_float(x)
 
 
 def is_floating_array(x) -> bool:

@@ -95,8 +95,8 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._control_types import AbstractController, ControlState, RefSample, make_environment
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
-from ._math import (DEFAULT_TOLERANCES, as_float, cast_floating, check_count, check_positive,
-                    check_tolerances, concrete, is_floating_array, resolve_tolerances)
+from ._math import (DEFAULT_TOLERANCES, as_float, as_float_or_none, cast_floating, check_count,
+                    check_positive, check_tolerances, concrete, is_floating_array, resolve_tolerances)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -118,10 +118,6 @@ __all__ = ["SimParams", "SimResult", "JointReference", "simulate", "simulate_bat
 
 def _arr(x):
     return as_float(x)
-
-
-def _arr_or_none(x):
-    return None if x is None else as_float(x)
 
 
 def tolerances(params: "SimParams", dtype) -> tuple:
@@ -168,8 +164,8 @@ class SimParams(eqx.Module):
     * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
     """
 
-    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
-    atol: Float[Array, ""] | None = eqx.field(default=None, converter=_arr_or_none)
+    rtol: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
+    atol: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
     pcoeff: Float[Array, ""] = eqx.field(default=0.0, converter=_arr)
     icoeff: Float[Array, ""] = eqx.field(default=1.0, converter=_arr)
     q_bound: Float[Array, ""] = eqx.field(default=100.0, converter=_arr)
