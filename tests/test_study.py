@@ -132,18 +132,22 @@ def test_cli_help_exits_cleanly():
         assert opt in proc.stdout
 
 
+def strict_json_loads(text: str):
+    """``json.loads`` that fails on the NaN / Infinity tokens strict JSON parsers reject."""
+
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
 def test_json_ready_writes_strict_json():
     """Rows hold NaN (a time a controller does not have) and inf (no time to goal): strict JSON
     has neither, so they become null; NumPy scalars and arrays become plain numbers and lists."""
     row = {"t_ik_per_sample": float("nan"), "time_to_goal": np.float64(np.inf), "n_steps": np.int64(7),
            "success": np.bool_(True), "seed": 3, "case": "simple", "p": np.array([1.0, -np.inf]),
            "nested": {"x": (np.float32(0.5), -np.inf)}}
-    text = json.dumps(json_ready(row), allow_nan=False)
-
-    def refuse(token):
-        raise AssertionError(f"non-standard JSON token {token}")
-
-    back = json.loads(text, parse_constant=refuse)
+    back = strict_json_loads(json.dumps(json_ready(row), allow_nan=False))
     assert back == {"t_ik_per_sample": None, "time_to_goal": None, "n_steps": 7, "success": True,
                     "seed": 3, "case": "simple", "p": [1.0, None], "nested": {"x": [0.5, None]}}
     with pytest.raises(ValueError):  # what the demo wrote before: Python's NaN token
@@ -549,10 +553,7 @@ def test_demo_writes_its_figures_and_a_strict_json_summary(tmp_path):
     for name in ("scene.png", "errors.png", "summary.json"):
         assert (tmp_path / name).stat().st_size > 0, name
 
-    def refuse(token):
-        raise AssertionError(f"non-standard JSON token {token}")
-
-    back = json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse)
+    back = strict_json_loads((tmp_path / "summary.json").read_text())
     assert back == summary
     assert back["controller"] == "joint_space" and back["t_lme_per_sample"] is None
     assert back["n_samples"] > 0 and np.isfinite(back["mean_pos_error"])
