@@ -18,8 +18,8 @@ run: $(VENV)/.installed
 
 # pytest exits 5 when it collects no test: treat that as a failure-free run with a clear message.
 # `make test` (what CI runs) leaves out the tests marked slow: whole tuning runs with reverse-mode
-# compilations through the simulator, and the examples, minutes each on 2 cores. `make test-all`
-# runs them too.
+# compilations through the simulator, the examples and each benchmark at a tiny size, minutes each on
+# 2 cores. `make test-all` runs them too.
 PYTEST_MARK ?= not slow
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "$(PYTEST_MARK)"; rc=$$?; \

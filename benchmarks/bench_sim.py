@@ -58,6 +58,7 @@ import time
 from types import SimpleNamespace
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy
 from scipy.integrate import solve_ivp
@@ -67,7 +68,7 @@ from redman_jax._control_types import AbstractController
 from redman_jax._controllers import CONTROLLERS
 from redman_jax._robot import thesis_arm
 from redman_jax._scenario import CASES
-from redman_jax._sim import SimParams, joint_reference, simulate, simulate_batch
+from redman_jax._sim import SimParams, joint_reference, simulate, simulate_batch, tolerances
 
 NUMPY_CONTROLLERS = ("joint_space", "velocity", "acceleration")
 GRADIENT_CASES = ("agriculture", "warehouse", "simple")  # the study runs "gradient" on these only
@@ -613,7 +614,8 @@ def main(argv=None):
         start_with_xla_flags(WORKER_XLA_FLAGS, "--xla-flags study")
 
     params = SimParams()
-    rtol, atol = float(params.rtol), float(params.atol)
+    # None (the default) means by the states' precision: float64's unless x64 is off
+    rtol, atol = (float(v) for v in tolerances(params, jnp.zeros(()).dtype))
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cpus (shared); python {platform.python_version()}")
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")

@@ -3,7 +3,7 @@ steps and warm wall time of the study's closed loops under each solver, same tol
 
 For every case and controller of the study on one arm, the same validated scenarios (the study's
 ``build_case``, seeds ``--seeds``) are simulated with ``simulate_batch`` under each solver of
-``--solvers`` at the default tolerances (rtol 1e-5, atol 1e-7). Printed per row: integration steps
+``--solvers`` at the default tolerances (float64: rtol 1e-5, atol 1e-7). Printed per row: integration steps
 per member (accepted + rejected; batch maximum and mean), warm wall time of the batch (second call),
 its ratio to the first solver's, the largest relative difference of the study's metrics (mean
 position error, mean orientation error, final position error) from the first solver's run, and
@@ -24,11 +24,12 @@ import argparse
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import redman_jax as rj
 from redman_jax._cli import parse_int_list
-from redman_jax._sim import SimParams
+from redman_jax._sim import SimParams, tolerances
 
 from bench_tolerance import FLAGS, METRICS, max_rel_dev, study_arguments, study_closed_loops
 
@@ -40,7 +41,8 @@ def main():
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
     solvers = args.solvers.split(",")
-    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}, rtol/atol 1e-5/1e-7")
+    rtol, atol = tolerances(SimParams(), jnp.zeros(()).dtype)  # None: by the states' precision
+    print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}, rtol/atol {float(rtol):.0e}/{float(atol):.0e}")
     print(f"{'case':12s} {'controller':13s} {'solver':7s} {'steps max':>9s} {'mean':>7s} {'warm s':>7s} "
           f"{'time ratio':>10s} {'metrics vs ' + solvers[0]:>17s} flags")
     totals = {s: [0, 0.0] for s in solvers}

@@ -23,13 +23,14 @@ import argparse
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from bench_tolerance import (REFERENCE, compare, reference_complete, reference_params, study_arguments,
                              study_closed_loops)
 
 import redman_jax as rj
 from redman_jax._cli import parse_int_list
-from redman_jax._sim import SimParams
+from redman_jax._sim import SimParams, tolerances
 
 CANDIDATES = ((0.0, 1.0), (0.4, 0.3), (0.3, 0.3), (0.2, 0.4), (0.1, 0.3))
 
@@ -47,8 +48,9 @@ def main():
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
     base = SimParams()
+    base_tol = tolerances(base, jnp.zeros(()).dtype)  # None: by the states' precision
     print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}, solver {base.solver}, "
-          f"rtol/atol {float(base.rtol):.0e}/{float(base.atol):.0e}"
+          f"rtol/atol {float(base_tol[0]):.0e}/{float(base_tol[1]):.0e}"
           + (f"; reference tsit5 {REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}" if args.reference else ""))
     print(f"{'case':12s} {'controller':13s} {'p,i':>8s} {'steps':>7s} {'rej %':>6s} {'max':>6s} "
           f"{'wall s':>7s}" + (f" {'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} flags" if args.reference else ""))

@@ -1,0 +1,64 @@
+"""Every benchmark script runs to the end of its table at a tiny size.
+
+``test_examples.py::test_benchmark_help`` only imports each script and parses its options. That let
+``bench_sim.py`` and ``bench_stepsize.py`` break unseen: they called ``float()`` on
+``SimParams().rtol``, which became None (resolved by the states' precision) in 1372374, and crashed
+before their first row. Here each runs once, as a user would, on one arm, one case, one seed or the
+smallest batch its options allow, and must exit 0 and print the line that ends its output. The
+numbers themselves are the full-size runs' business (``make bench``).
+
+Cost (``slow``): about 5.5 min on an idle 2-core machine with the twelve runs one after another (4 to
+70 s each, nearly all of it compilation), 2 min with ``pytest -n 2``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+VENV_PY = ROOT / ".venv" / "bin" / "python"
+PY = str(VENV_PY) if VENV_PY.exists() else sys.executable
+
+# script: (its smallest run, a line its output ends with)
+SMALL_RUNS = {
+    "bench_cases.py": (["--dof", "7", "--seeds", "1"], "all five"),
+    "bench_controllers.py": (["--dof", "7", "--batches", "1", "--controllers", "joint_space", "--calls", "1"],
+                             "acceleration_naive   batch     1:"),
+    "bench_dynamics.py": (["--quick"], "paired rounds at batch 1024"),
+    "bench_guided.py": (["--dof", "7", "--seeds", "1", "--reps", "2"], "simple: stepper / per-sample, warm speed-up"),
+    "bench_ik.py": (["--dof", "7", "--seeds", "1", "--cases", "welding"], "all cases, batched, warm"),
+    "bench_planning.py": (["--seeds", "1", "--repeat", "1"], "batch vmap"),
+    "bench_sim.py": (["--dof", "7", "--seeds", "2", "--cases", "welding", "--controllers", "joint_space",
+                      "--scipy-samples", "2"], "target >= 100x met in"),
+    "bench_solvers.py": (["--dof", "7", "--seeds", "1", "--cases", "welding", "--controllers", "joint_space",
+                          "--solvers", "tsit5,dopri5"], "all rows: total steps"),
+    "bench_stepsize.py": (["--dof", "7", "--seeds", "1", "--cases", "welding", "--controllers", "joint_space",
+                           "--candidates", "0.7,0.3"], "totals over the rows"),
+    "bench_tolerance.py": (["--dof", "7", "--seeds", "1", "--cases", "welding", "--controllers", "joint_space",
+                            "--candidates", "1e-5/1e-7"], "largest relative deviation from the reference"),
+    "bench_tuning.py": (["--arm", "7", "--controllers", "velocity", "--steps", "1"], "total wall time"),
+    "bench_vector_field.py": (["--batches", "1", "--controllers", "joint_space"],
+                              "closed-loop vector field joint_space"),
+}
+
+
+def test_every_benchmark_has_a_small_run():
+    """A new benchmark gets its small run here (or this fails)."""
+    assert set(SMALL_RUNS) == {p.name for p in (ROOT / "benchmarks").glob("bench_*.py")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(SMALL_RUNS))
+def test_benchmark_runs_small(script):
+    args, last = SMALL_RUNS[script]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", MPLBACKEND="Agg", REDMAN_JAX_X64="1")
+    proc = subprocess.run([PY, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
+                          env=env, timeout=900, cwd=str(ROOT))
+    assert proc.returncode == 0, (f"{script} {' '.join(args)} exited {proc.returncode}\n"
+                                  f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}")
+    assert last in proc.stdout, f"{script}: {last!r} not printed\n{proc.stdout[-3000:]}"
