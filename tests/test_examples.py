@@ -297,3 +297,22 @@ def test_bench_guided_patch_applies(monkeypatch):
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     fn = importlib.import_module("bench_guided")._per_sample_counts()
     assert callable(fn) and fn.__name__ == "_simulate_guided"
+
+
+@pytest.mark.slow
+def test_readme_python_example_runs(tmp_path, env):
+    """The README's "From Python" block, as a user would paste it into a file: it runs (the names it
+    uses still exist and take those arguments) and prints the run's success and a finite mean
+    position error in metres (40 s on 2 cores)."""
+    import re
+
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert len(blocks) == 1, "the README's Python blocks changed: run each of them here"
+    script = tmp_path / "readme_example.py"
+    script.write_text(blocks[0])
+    proc = subprocess.run([PY, str(script)], capture_output=True, text=True, env=env, timeout=TIMEOUT,
+                          cwd=str(tmp_path))
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    success, err = proc.stdout.split()[-2:]
+    assert success in ("True", "False")
+    assert math.isfinite(float(err)) and 0.0 <= float(err) < 1.0
