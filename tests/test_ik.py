@@ -241,6 +241,9 @@ def test_bad_input_raises():
     ref = circle_reference()
     with pytest.raises(ValueError, match="q0"):
         ik_reference(ARM, ref, free_obstacles(), IKParams(), jnp.zeros(3))
+    # a NaN start made every sample NaN and the trajectory silently invalid
+    with pytest.raises(ValueError, match="^q0: expected finite values"):
+        ik_reference(ARM, ref, free_obstacles(), IKParams(), jnp.asarray(Q0).at[2].set(jnp.nan))
     with pytest.raises(ValueError, match="method"):
         IKParams(method="newton")
     # a zero or NaN acceleration bound made every bound NaN and every candidate silently invalid

@@ -507,6 +507,32 @@ def test_bad_input_raises():
         simulate(ARM, sc, CTRL, toy_gains("osc"), ik=(jref[0][:10], jref[1], jref[2]))
 
 
+def test_bad_initial_state_raises_by_name():
+    """``q0`` / ``qd0`` of the wrong shape, or holding a NaN or an infinity, are refused at the call,
+    by name: before, a NaN ``q0`` ran the whole run in NaN (flagged as diverged) and a wrong shape
+    failed inside ``kinematics``. Traced ones (a caller's ``vmap``) pass to the caller's checks."""
+    sc, _ = joint_motion_scenario(ARM, DQ_FREE, 0.2, 30)
+    n, q = ARM.n_dof, np.asarray(ARM.q0)
+    g = toy_gains("osc")
+    bad = [(dict(q0=q[:-1]), rf"^q0: expected shape \({n},\)"),
+           (dict(q0=np.where(np.arange(n) == 1, np.nan, q)), "^q0: expected finite values"),
+           (dict(q0=q, qd0=np.full(n, np.inf)), "^qd0: expected finite values"),
+           (dict(qd0=np.zeros((1, n))), rf"^qd0: expected shape \({n},\)")]
+    for kw, match in bad:
+        with pytest.raises(ValueError, match=match):
+            simulate(ARM, sc, CTRL, g, **kw)
+        with pytest.raises(ValueError, match=match):
+            simulate_dense(ARM, sc, CTRL, g, **kw)
+    batch = stack_scenarios([sc, sc])
+    with pytest.raises(ValueError, match=rf"^q0: expected shape \(2, {n}\)"):
+        simulate_batch(ARM, batch, CTRL, g, q0=q)
+    with pytest.raises(ValueError, match="^q0: expected finite values"):
+        simulate_batch(ARM, batch, CTRL, g, q0=np.stack([q, q * np.nan]))
+    # traced: the shape is checked, the values are the caller's
+    out = jax.vmap(lambda qq: simulate(ARM, sc, CTRL, g, q0=qq).metrics.final_pos_err)(jnp.stack([q, q]))
+    assert np.all(np.isfinite(np.asarray(out)))
+
+
 def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():
     """``SimParams(solver="auto")`` (the default) integrates trajectory runs with Dopri5 and
     gradient-guided runs with Tsit5; a named solver is used for both."""

@@ -69,7 +69,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
-from ._math import as_float, check_positive
+from ._math import as_float, check_initial_state, check_positive
 from ._math import clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
@@ -430,8 +430,7 @@ def _check_reference(arm: Arm, ref: Reference, q0):
             raise ValueError(f"Reference.{name}: expected shape {shape}, got {got}")
     if N < 2:
         raise ValueError(f"Reference: needs at least 2 samples of capacity, got {N}")
-    if q0 is not None and tuple(jnp.shape(q0)) != (arm.n_dof,):
-        raise ValueError(f"q0: expected shape ({arm.n_dof},), got {tuple(jnp.shape(q0))}")
+    check_initial_state("q0", q0, arm.n_dof)
 
 
 def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams) -> IKResult:

@@ -235,6 +235,28 @@ def concrete(x):
         return None
 
 
+def check_initial_state(name: str, x, n: int, R: int | None = None) -> None:
+    """A given initial state (``q0`` or ``qd0``; None: the default): shape ``(n,)``, or ``(R, n)``
+    per run of a batch of ``R`` (``R`` None: one run); where concrete, finite (a NaN there makes the
+    whole run NaN, flagged as diverged, instead of saying which input was wrong)."""
+    if x is None:
+        return
+    shape = tuple(np.shape(x))
+    want = (n,) if R is None else (R, n)
+    if shape != want:
+        raise ValueError(f"{name}: expected shape {want} ({n}-DOF arm{'' if R is None else f', {R} runs'}), "
+                         f"got {shape}")
+    check_finite(name, x)
+
+
+def check_finite(name: str, x) -> None:
+    """Raise ``ValueError`` naming ``name`` if concrete floating-point ``x`` holds a NaN or an
+    infinity (traced: the caller's to check)."""
+    a = concrete(x)
+    if a is not None and a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite values, got {a}")
+
+
 def check_positive(name: str, x, allow_zero: bool = False, allow_inf: bool = False) -> None:
     """Raise ``ValueError`` naming ``name`` unless concrete ``x`` is finite and positive
     (non-negative with ``allow_zero``; ``+inf`` also passes with ``allow_inf``)."""

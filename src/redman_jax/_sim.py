@@ -96,7 +96,8 @@ from ._control_types import AbstractController, ControlState, RefSample, make_en
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
 from ._math import (DEFAULT_TOLERANCES, as_float, as_float_or_none, cast_floating, check_count,
-                    check_positive, check_tolerances, concrete, is_floating_array, resolve_tolerances)
+                    check_initial_state, check_positive, check_tolerances, concrete, is_floating_array,
+                    resolve_tolerances)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -909,7 +910,7 @@ def _simulate_core(arm, scenario, controller, gains, jref, q0, qd0, params) -> S
 _simulate_jit = eqx.filter_jit(_simulate_core)
 
 
-def _check_inputs(arm, scenario, controller, ik, batched: bool):
+def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=None):
     if not isinstance(arm, Arm):
         raise ValueError(f"arm: expected an Arm, got {type(arm).__name__}")
     if not isinstance(scenario, Scenario):
@@ -924,6 +925,9 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool):
         raise ValueError(f"scenario.reference.p: expected {nd + 1} dimensions "
                          f"({'batched' if batched else 'single'} scenario), got shape "
                          f"{scenario.reference.p.shape}")
+    R = scenario.reference.p.shape[0] if batched else None
+    for name, x in (("q0", q0), ("qd0", qd0)):
+        check_initial_state(name, x, arm.n_dof, R)
 
 
 def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
@@ -979,10 +983,11 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     default ``mode="horizon"``, whose stepping loop is forward only: differentiate those with
     ``SimParams(mode="per_sample")``.
 
-    **Raises** ``ValueError`` for a wrong argument type or a missing joint reference.
+    **Raises** ``ValueError`` for a wrong argument type, a missing joint reference, or a ``q0`` /
+    ``qd0`` of the wrong shape or (where concrete) not finite.
     """
     params = SimParams() if params is None else params
-    _check_inputs(arm, scenario, controller, ik, batched=False)
+    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0)
     params = _in_precision(arm, scenario, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
     scenario = _with_layout(arm, scenario, params, 1)
@@ -1144,7 +1149,7 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     call and agrees with it to rounding (the programs are compiled for another batch size).
     """
     params = SimParams() if params is None else params
-    _check_inputs(arm, scenarios, controller, ik, batched=True)
+    _check_inputs(arm, scenarios, controller, ik, batched=True, q0=q0, qd0=qd0)
     params = _in_precision(arm, scenarios, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     if q0 is not None and qd0 is None:
@@ -1258,7 +1263,7 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
     params = SimParams() if params is None else params
     if params.mode != "horizon":
         params = dataclasses.replace(params, mode="horizon")
-    _check_inputs(arm, scenario, controller, ik, batched=False)
+    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0)
     params = _in_precision(arm, scenario, gains, ik, params)
     if controller.uses_guidance:
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
