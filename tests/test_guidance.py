@@ -172,6 +172,18 @@ def test_bad_input_raises():
     obs, xs, xg, _ = simple_scene(1)
     with pytest.raises(ValueError, match="x0"):
         perfect_controller(np.zeros(2), xg, obs)
+    # a NaN or infinite start or goal ran the descent in NaN and reported a plain failure
+    with pytest.raises(ValueError, match="^x0: expected finite values"):
+        perfect_controller(np.array([np.nan, 0.0, 0.5]), xg, obs)
+    with pytest.raises(ValueError, match="^goal_p: expected finite values"):
+        perfect_controller(xs, np.asarray(xg) * np.inf, obs)
+    two = stack_obstacles([obs, obs])
+    with pytest.raises(ValueError, match=r"^x0: expected shape \(S, 3\)"):
+        perfect_controller_batch(np.asarray(xs), np.stack([xg, xg]), two)
+    with pytest.raises(ValueError, match=r"^goal_p: expected shape \(2, 3\)"):
+        perfect_controller_batch(np.stack([xs, xs]), np.asarray(xg), two)
+    with pytest.raises(ValueError, match="^goal_p: expected finite values"):
+        perfect_controller_batch(np.stack([xs, xs]), np.stack([xg, np.full(3, np.nan)]), two)
 
 
 @pytest.mark.parametrize("clearance", [0.12, 0.15, 0.2, 0.3])

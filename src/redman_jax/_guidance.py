@@ -30,7 +30,7 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
-from ._math import (as_float, as_float_or_none, check_count, check_positive, check_tolerances,
+from ._math import (as_float, as_float_or_none, check_count, check_finite, check_positive, check_tolerances,
                     resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
@@ -289,21 +289,36 @@ def perfect_controller(x0, goal_p, obs: ObstacleSet, params: PerfectParams | Non
 
     **Arguments**: start ``x0`` ``(3,)`` (the end-effector start), ``goal_p`` ``(3,)``, obstacles,
     :class:`PerfectParams`. **Returns** :class:`PerfectResult` (jit-compiled; vmaps, see
-    :func:`perfect_controller_batch`). **Raises** ``ValueError`` for wrongly shaped points.
+    :func:`perfect_controller_batch`). **Raises** ``ValueError`` for wrongly shaped or (where
+    concrete) non-finite points.
     """
     params = PerfectParams() if params is None else params
     dtype = jnp.result_type(float)  # the field's parameters are in the default float type
     x0, goal_p = jnp.asarray(x0, dtype), jnp.asarray(goal_p, dtype)
-    if x0.shape != (3,):
-        raise ValueError(f"x0: expected shape (3,), got {x0.shape}")
-    if goal_p.shape != (3,):
-        raise ValueError(f"goal_p: expected shape (3,), got {goal_p.shape}")
+    _check_points(x0, goal_p, (3,))
     return _perfect_jit(x0, goal_p.astype(x0.dtype), obs, params)
 
 
-@eqx.filter_jit
+def _check_points(x0, goal_p, shape) -> None:
+    """The perfect controller's start and goal: of ``shape`` and, where concrete, finite (a NaN
+    start or goal ran the descent in NaN and reported a silent failure)."""
+    for name, x in (("x0", x0), ("goal_p", goal_p)):
+        if tuple(x.shape) != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {tuple(x.shape)}")
+        check_finite(name, x)
+
+
 def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams | None = None) -> PerfectResult:
     """:func:`perfect_controller` over a batch of scenes: ``x0``, ``goal_p`` ``(S, 3)`` and stacked
-    obstacle sets."""
-    params = PerfectParams() if params is None else params
+    obstacle sets (one ``jit(vmap)``). **Raises** ``ValueError`` for wrongly shaped or (where
+    concrete) non-finite points."""
+    x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
+    if x0.ndim != 2 or x0.shape[1] != 3:
+        raise ValueError(f"x0: expected shape (S, 3), got {tuple(x0.shape)}")
+    _check_points(x0, goal_p, tuple(x0.shape))
+    return _perfect_batch_jit(x0, goal_p, obs, PerfectParams() if params is None else params)
+
+
+@eqx.filter_jit
+def _perfect_batch_jit(x0, goal_p, obs, params):
     return jax.vmap(_perfect_core, in_axes=(0, 0, 0, None))(x0, goal_p, obs, params)
