@@ -563,3 +563,20 @@ def test_a_non_finite_gain_is_an_error_naming_it_when_concrete():
     assert float(jax.grad(lambda k: 2 * G(kp=k).kp)(1.0)) == 2.0
     nan = jax.tree.map(lambda x: x * jnp.nan, G())
     assert np.isnan(np.asarray(nan.kp))
+
+
+def test_make_environment_refuses_bad_goals_by_name():
+    """A goal of the wrong shape or, where concrete, not finite is refused where the environment is
+    built (before, a 2-vector goal built an Environment and a NaN goal made every command NaN);
+    traced goals (the simulator's vmap) pass."""
+    good_p, good_q = jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0.0, 0.0, 0.0])
+    for p, q, match in [(good_p[:2], good_q, r"^goal_p: expected shape \(3,\)"),
+                        (good_p, good_q[:3], r"^goal_quat: expected shape \(4,\)"),
+                        (good_p.at[1].set(jnp.nan), good_q, "^goal_p: expected finite values"),
+                        (good_p, good_q * jnp.inf, "^goal_quat: expected finite values")]:
+        with pytest.raises(ValueError, match=match):
+            make_environment(EMPTY, p, q)
+    with pytest.raises(ValueError, match="^buffer_size"):
+        make_environment(EMPTY, good_p, good_q, buffer_size=0)
+    env = jax.vmap(lambda p: make_environment(EMPTY, p, good_q))(jnp.stack([good_p, good_p]))
+    assert env.goal_p.shape == (2, 3) and env.virtual_p.shape == (2, 20, 3)
