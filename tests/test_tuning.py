@@ -176,6 +176,13 @@ def test_bad_inputs_raise_naming_the_field():
         step_experiment(arm, step=(0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="joint_target"):
         step_experiment(arm, joint_target="magic")
+    # refused before the default target's simulation; a negative rate climbed the loss
+    for kw, match in [(dict(learning_rate=-1.0), "^learning_rate"), (dict(learning_rate=float("nan")), "^learning_rate"),
+                      (dict(steps=-1), "^steps"), (dict(steps=2.5), "^steps")]:
+        with pytest.raises(ValueError, match=match):
+            tune_gains(arm, "acceleration", **kw)
+        with pytest.raises(ValueError, match=match):
+            tune_gains_batch(arm, "acceleration", make_controller("acceleration").default_gains(), **kw)
 
 
 # ----------------------------------------------------------------------------------------------

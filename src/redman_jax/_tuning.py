@@ -86,7 +86,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from ._math import as_float
+from ._math import as_float, check_count, check_positive
 from ._control_types import AbstractController, ControlOutput, ControlState
 from ._controllers import CONTROLLERS, make_controller
 from ._kinematics import end_effector_pose, jacobian, kinematics
@@ -850,8 +850,10 @@ def tune_gains(arm: Arm, controller, target=None, steps: int = 30, learning_rate
     with the smallest ``|T_s - T*|`` among settled iterates, for tracking the smallest loss).
 
     **Raises** ``ValueError`` for an untunable controller, an unknown objective, a tracking
-    objective without torque bound, a bad torque bound or target.
+    objective without torque bound, a bad torque bound or target, ``steps`` that is not an int
+    >= 0 or a ``learning_rate`` that is not finite and positive.
     """
+    _check_schedule(steps, learning_rate)
     controller, name, experiment, params, target, base = _prepare(
         arm, controller, objective, torque_bound, target, experiment, params, gains)
     return _tune(arm, controller, name, base, experiment, params, target, steps, learning_rate,
@@ -867,6 +869,7 @@ def tune_gains_batch(arm: Arm, controller, inits, target=None, steps: int = 30,
     jnp.stack(x), *list_of_gains)``). With ``arms_batched=True`` ``arm`` is a stack of ``B`` arms of
     the same structure and ``experiments`` their stacked experiments (default: built per arm).
     ``target``: a scalar or ``(B,)`` (default: each arm's joint-space settling time)."""
+    _check_schedule(steps, learning_rate)
     if isinstance(controller, str):
         controller = make_controller(controller)
     B = jax.tree.leaves(inits)[0].shape[0]
@@ -893,6 +896,14 @@ def tune_gains_batch(arm: Arm, controller, inits, target=None, steps: int = 30,
     return _tune(arm, controller, name, inits, experiments, params,
                  np.broadcast_to(np.asarray(target, float), (B,)), steps, learning_rate, torque_bound,
                  objective, settings, batched=True, arms_batched=arms_batched, method=method)
+
+
+def _check_schedule(steps, learning_rate) -> None:
+    """Before anything is simulated (the default target is a simulation): ``steps`` an int >= 0
+    (0 only scores the starting gains), ``learning_rate`` None or finite and positive."""
+    check_count("steps", steps, 0)
+    if learning_rate is not None:
+        check_positive("learning_rate", learning_rate)
 
 
 def _tune(arm, controller, name, base, experiment, params, target, steps, learning_rate,
