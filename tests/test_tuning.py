@@ -176,7 +176,7 @@ def test_bad_inputs_raise_naming_the_field():
         step_experiment(arm, step=(0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="joint_target"):
         step_experiment(arm, joint_target="magic")
-    # refused before the default target's simulation; a negative rate climbed the loss
+    # refused before the default target's simulation (a negative rate stepped against the descent)
     for kw, match in [(dict(learning_rate=-1.0), "^learning_rate"), (dict(learning_rate=float("nan")), "^learning_rate"),
                       (dict(steps=-1), "^steps"), (dict(steps=2.5), "^steps")]:
         with pytest.raises(ValueError, match=match):
