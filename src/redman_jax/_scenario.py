@@ -6,7 +6,8 @@ length ``N`` with ``mask``; ``n_samples`` is the number of valid samples. After 
 sample the padding repeats the final sample at rest, so a padded reference is also a valid one.
 
 A :class:`Scenario` is one generated environment: obstacles, goal pose, reference and the seed it
-came from. Scenarios of one case share their shapes and stack along a leading batch axis.
+came from. Scenarios of one case share their shapes and stack along a leading batch axis
+(:func:`stack_scenarios`; with ``pad=True`` scenes of several cases too).
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._host import host_array, put
 from ._obstacles import ObstacleSet
 
 __all__ = ["Reference", "Scenario", "CASES", "stack_scenarios", "reference_sample"]
@@ -73,10 +76,70 @@ class Scenario(eqx.Module):
     case: str = eqx.field(static=True, default="custom")
 
 
-def stack_scenarios(scenarios) -> Scenario:
-    """Stack scenarios with identical shapes along a new leading axis (for ``vmap``)."""
+def stack_scenarios(scenarios, pad: bool = False) -> Scenario:
+    """Stack scenarios along a new leading axis (for ``vmap``, :func:`~redman_jax.simulate_batch`).
+
+    They must share their shapes (reference capacity ``N``, obstacle capacities) and their case
+    name, as the seeds of one case do. ``pad=True`` stacks scenes of different shapes or cases:
+    each reference is padded to the largest ``N`` (invalid samples repeating the last one, as a
+    padded reference is built), each obstacle family to its largest capacity (masked slots), and
+    the case becomes ``"custom"`` where the cases differ (the simulator never reads it); the runs
+    are those of the unpadded scenes, to rounding.
+
+    **Raises** ``ValueError`` for an empty list, an entry that is not a :class:`Scenario` or already
+    batched, or (``pad=False``) scenes whose shapes or cases differ, naming the first one.
+    """
     scenarios = list(scenarios)
+    if not scenarios:
+        raise ValueError("scenarios: need at least one Scenario to stack")
+    for i, s in enumerate(scenarios):
+        if not isinstance(s, Scenario):
+            raise ValueError(f"scenarios[{i}]: expected a Scenario, got {type(s).__name__}")
+        if s.reference.p.ndim != 2:
+            raise ValueError(f"scenarios[{i}]: already batched (reference.p of shape "
+                             f"{tuple(s.reference.p.shape)}); stack single scenarios")
+
+    def shapes(s):
+        return s.reference.capacity, s.obstacles.capacities, s.case
+
+    if pad:
+        N = max(s.reference.capacity for s in scenarios)
+        caps = tuple(max(c) for c in zip(*(s.obstacles.capacities for s in scenarios)))
+        case = scenarios[0].case if len({s.case for s in scenarios}) == 1 else "custom"
+        scenarios = [_padded(s, N, caps, case) for s in scenarios]
+    else:
+        first = shapes(scenarios[0])
+        for i, s in enumerate(scenarios[1:], 1):
+            if shapes(s) != first:
+                raise ValueError(
+                    f"scenarios[{i}]: reference capacity {s.reference.capacity}, obstacle capacities "
+                    f"{s.obstacles.capacities}, case {s.case!r} differ from scenarios[0]'s {first[0]}, "
+                    f"{first[1]}, {first[2]!r}; stack_scenarios(..., pad=True) pads them to common shapes")
     return jax.tree.map(lambda *xs: jnp.stack(xs), *scenarios)
+
+
+def _padded(s: Scenario, N: int, caps: tuple, case: str) -> Scenario:
+    """``s`` with its reference padded to ``N`` samples (the last row repeated, ``mask`` False) and
+    its obstacle families to ``caps`` (masked slots)."""
+    from ._obstacles import pad_obstacles
+
+    ref = s.reference
+    extra = N - ref.capacity
+
+    def rows(x, fill=None):  # concrete: in NumPy (eager jnp compiles once per shape)
+        if extra == 0:
+            return x
+        h = host_array(x)
+        xp, v = (jnp, x) if h is None else (np, h)
+        tail = xp.repeat(v[-1:], extra, axis=0) if fill is None else xp.full((extra,) + v.shape[1:], fill, v.dtype)
+        out = xp.concatenate([v, tail])
+        return out if h is None else put(out)
+
+    ref = Reference(p=rows(ref.p), v=rows(ref.v), a=rows(ref.a), quat=rows(ref.quat), omega=rows(ref.omega),
+                    omega_dot=rows(ref.omega_dot), rot=rows(ref.rot), mask=rows(ref.mask, False),
+                    n_samples=ref.n_samples, ts=ref.ts)
+    return Scenario(obstacles=pad_obstacles(s.obstacles, caps), goal_p=s.goal_p, goal_quat=s.goal_quat,
+                    reference=ref, seed=s.seed, seed_used=s.seed_used, valid=s.valid, case=case)
 
 
 def reference_sample(ref: Reference, k) -> Reference:
