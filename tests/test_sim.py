@@ -6,6 +6,7 @@ operational space), so every test has an analytic or brute-force reference. Prob
 small (7-DOF arm, <= 0.8 s horizons) to keep the file well under a minute.
 """
 
+import dataclasses
 import os
 
 import equinox as eqx
@@ -507,10 +508,12 @@ def test_bad_input_raises():
         simulate(ARM, sc, CTRL, toy_gains("osc"), ik=(jref[0][:10], jref[1], jref[2]))
 
 
-def test_bad_initial_state_raises_by_name():
+def test_bad_initial_state_and_gains_raise_by_name():
     """``q0`` / ``qd0`` of the wrong shape, or holding a NaN or an infinity, are refused at the call,
     by name: before, a NaN ``q0`` ran the whole run in NaN (flagged as diverged) and a wrong shape
-    failed inside ``kinematics``. Traced ones (a caller's ``vmap``) pass to the caller's checks."""
+    failed inside ``kinematics``. Traced ones (a caller's ``vmap``) pass to the caller's checks.
+    So are the gains of another controller (an ``AttributeError`` inside the law) and batched gains
+    without the runs' leading axis (a ``vmap`` size error)."""
     sc, _ = joint_motion_scenario(ARM, DQ_FREE, 0.2, 30)
     n, q = ARM.n_dof, np.asarray(ARM.q0)
     g = toy_gains("osc")
@@ -528,6 +531,14 @@ def test_bad_initial_state_raises_by_name():
         simulate_batch(ARM, batch, CTRL, g, q0=q)
     with pytest.raises(ValueError, match="^q0: expected finite values"):
         simulate_batch(ARM, batch, CTRL, g, q0=np.stack([q, q * np.nan]))
+    # gains of another controller's class; batch_gains without the runs' leading axis
+    with pytest.raises(ValueError, match="^gains: Toy takes ToyGains, got VelocityGains"):
+        simulate(ARM, sc, CTRL, redman_jax.VelocityOSC().default_gains())
+    three = jax.tree.map(lambda x: jnp.stack([x, x, x]), g)
+    with pytest.raises(ValueError, match=r"^gains\.w: batch_gains=True needs a leading axis of 2 runs, got shape \(3, 4\)"):
+        simulate_batch(ARM, batch, CTRL, three, batch_gains=True)
+    with pytest.raises(ValueError, match=r"^gains\.w: batch_gains=True needs a leading axis of 2 runs, got shape \(4,\)"):
+        simulate_batch(ARM, batch, CTRL, g, batch_gains=True)
     # traced: the shape is checked, the values are the caller's
     out = jax.vmap(lambda qq: simulate(ARM, sc, CTRL, g, q0=qq).metrics.final_pos_err)(jnp.stack([q, q]))
     assert np.all(np.isfinite(np.asarray(out)))
@@ -629,3 +640,34 @@ def test_mixed_precision_inputs_are_refused_by_name(free):
         with pytest.raises(ValueError, match=f"^{name}: float64"):
             simulate_batch(kw["arm"], stack_scenarios([sc32, sc32]), CTRL, kw["gains"],
                            ik=None if kw["ik"] is None else tuple(jnp.stack([x, x]) for x in kw["ik"]))
+
+
+def test_stack_scenarios_refuses_mixed_shapes_and_pads_on_request():
+    """Scenes of different reference capacities, obstacle capacities and cases: refused by name
+    (before: a pytree-structure error from ``jax.tree.map``); with ``pad=True`` stacked at the largest
+    shapes, case ``"custom"``, and each member of the batch runs as its unpadded scene did."""
+    a, ja = joint_motion_scenario(ARM, DQ_FREE, 0.2, CAP)
+    b, jb = joint_motion_scenario(ARM, [0.3, -0.2, 0.1, 0.2, -0.1, 0.3, -0.2], 0.15, CAP - 10, seed=1)
+    b = eqx.tree_at(lambda s: s.obstacles, b, make_obstacles(
+        spheres=[(np.eye(3), c, (0.05,)) for c in ((0.6, 0.6, 0.2), (-0.6, 0.5, 0.3), (0.5, -0.6, 0.4))],
+        capacities=(3, 1, 1)))
+    b = dataclasses.replace(b, case="simple")
+    with pytest.raises(ValueError, match=r"^scenarios: need at least one"):
+        stack_scenarios([])
+    with pytest.raises(ValueError, match=r"^scenarios\[1\]: reference capacity 40, obstacle capacities \(3, 1, 1\)"):
+        stack_scenarios([a, b])
+    with pytest.raises(ValueError, match=r"^scenarios\[0\]: already batched"):
+        stack_scenarios([stack_scenarios([a, a])])
+    both = stack_scenarios([a, b], pad=True)
+    assert both.reference.p.shape == (2, CAP, 3) and both.obstacles.capacities == (3, 1, 1)
+    assert both.case == "custom"
+    pad_rows = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], CAP - x.shape[0], axis=0)])
+    jref = tuple(jnp.stack([x, pad_rows(y)]) for x, y in zip(ja, jb))
+    batch = simulate_batch(ARM, both, CTRL, toy_gains("osc"), ik=jref)
+    for i, (sc, j) in enumerate(((a, ja), (b, jb))):
+        one = run(sc, j)
+        n = int(sc.reference.n_samples)
+        np.testing.assert_allclose(np.asarray(batch.q[i, :n]), np.asarray(one.q[:n]), rtol=0, atol=1e-9)
+        assert bool(batch.metrics.success[i]) == bool(one.metrics.success)
+        np.testing.assert_allclose(float(batch.metrics.mean_pos_err[i]), float(one.metrics.mean_pos_err),
+                                   rtol=1e-9)

@@ -910,7 +910,8 @@ def _simulate_core(arm, scenario, controller, gains, jref, q0, qd0, params) -> S
 _simulate_jit = eqx.filter_jit(_simulate_core)
 
 
-def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=None):
+def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=None, gains=None,
+                  batch_gains: bool = False):
     if not isinstance(arm, Arm):
         raise ValueError(f"arm: expected an Arm, got {type(arm).__name__}")
     if not isinstance(scenario, Scenario):
@@ -928,6 +929,23 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=Non
     R = scenario.reference.p.shape[0] if batched else None
     for name, x in (("q0", q0), ("qd0", qd0)):
         check_initial_state(name, x, arm.n_dof, R)
+    _check_gains(controller, gains, R if batch_gains else None)
+
+
+def _check_gains(controller, gains, R) -> None:
+    """Gains of the controller's own class (where its :meth:`default_gains` is a Module: the gains
+    of another controller failed inside the control law with an ``AttributeError``), and with
+    ``batch_gains`` (``R`` runs) a leading axis ``R`` on every array."""
+    default = controller.default_gains()
+    if (isinstance(default, eqx.Module) and isinstance(gains, eqx.Module)
+            and not isinstance(gains, type(default))):
+        raise ValueError(f"gains: {type(controller).__name__} takes {type(default).__name__}, "
+                         f"got {type(gains).__name__}")
+    if R is not None:
+        for path, x in jax.tree_util.tree_leaves_with_path(gains):
+            if not jnp.shape(x) or jnp.shape(x)[0] != R:
+                raise ValueError(f"gains{jax.tree_util.keystr(path)}: batch_gains=True needs a leading "
+                                 f"axis of {R} runs, got shape {tuple(jnp.shape(x))}")
 
 
 def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
@@ -987,7 +1005,7 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     ``qd0`` of the wrong shape or (where concrete) not finite.
     """
     params = SimParams() if params is None else params
-    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0)
+    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0, gains=gains)
     params = _in_precision(arm, scenario, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
     scenario = _with_layout(arm, scenario, params, 1)
@@ -1149,7 +1167,8 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     call and agrees with it to rounding (the programs are compiled for another batch size).
     """
     params = SimParams() if params is None else params
-    _check_inputs(arm, scenarios, controller, ik, batched=True, q0=q0, qd0=qd0)
+    _check_inputs(arm, scenarios, controller, ik, batched=True, q0=q0, qd0=qd0, gains=gains,
+                  batch_gains=batch_gains)
     params = _in_precision(arm, scenarios, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     if q0 is not None and qd0 is None:
@@ -1263,7 +1282,7 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
     params = SimParams() if params is None else params
     if params.mode != "horizon":
         params = dataclasses.replace(params, mode="horizon")
-    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0)
+    _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0, gains=gains)
     params = _in_precision(arm, scenario, gains, ik, params)
     if controller.uses_guidance:
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
