@@ -1001,8 +1001,9 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     default ``mode="horizon"``, whose stepping loop is forward only: differentiate those with
     ``SimParams(mode="per_sample")``.
 
-    **Raises** ``ValueError`` for a wrong argument type, a missing joint reference, or a ``q0`` /
-    ``qd0`` of the wrong shape or (where concrete) not finite.
+    **Raises** ``ValueError`` for a wrong argument type, a missing joint reference, gains of
+    another controller's class, or a ``q0`` / ``qd0`` of the wrong shape or (where concrete) not
+    finite.
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0, gains=gains)
@@ -1165,6 +1166,9 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in two threads;
     ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and flags as in one
     call and agrees with it to rounding (the programs are compiled for another batch size).
+
+    **Raises** ``ValueError`` as :func:`simulate` does, for unbatched scenarios, a ``q0`` / ``qd0``
+    not of shape ``(R, n)``, or with ``batch_gains`` a gains leaf without the leading axis ``R``.
     """
     params = SimParams() if params is None else params
     _check_inputs(arm, scenarios, controller, ik, batched=True, q0=q0, qd0=qd0, gains=gains,
