@@ -32,6 +32,7 @@ from redman_jax._tuning import (
     soft_settling_time,
     step_experiment,
     target_settling_time,
+    tracking_experiment,
     tune_gains,
     tune_gains_batch,
     write_gains_json,
@@ -176,6 +177,11 @@ def test_bad_inputs_raise_naming_the_field():
         step_experiment(arm, step=(0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="joint_target"):
         step_experiment(arm, joint_target="magic")
+    # a NaN start was reported as the joint target's failure (residual nan), a wrong shape by kinematics
+    with pytest.raises(ValueError, match="^q0: expected finite values"):
+        step_experiment(arm, q0=jnp.asarray(arm.q0).at[3].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"^q0: expected shape \(7,\)"):
+        tracking_experiment(arm, q0=jnp.zeros(5))
     # refused before the default target's simulation (a negative rate stepped against the descent)
     for kw, match in [(dict(learning_rate=-1.0), "^learning_rate"), (dict(learning_rate=float("nan")), "^learning_rate"),
                       (dict(steps=-1), "^steps"), (dict(steps=2.5), "^steps")]:

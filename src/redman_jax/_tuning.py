@@ -86,7 +86,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from ._math import as_float, check_count, check_positive
+from ._math import as_float, check_count, check_initial_state, check_positive
 from ._control_types import AbstractController, ControlOutput, ControlState
 from ._controllers import CONTROLLERS, make_controller
 from ._kinematics import end_effector_pose, jacobian, kinematics
@@ -303,12 +303,14 @@ def step_experiment(arm: Arm, step=STEP, horizon: float = 1.0, ts: float = 0.01,
     reference ``(q*, 0, 0)`` (``joint_target="newton"``: :func:`joint_step_target`; ``"ik"``: the
     last sample of the study's IK on the constant reference). Band ``band_fraction * |step|``.
 
-    **Raises** ``ValueError`` for an unknown ``joint_target``, a bad band or a ``q*`` that does not
-    reach the stepped position (residual above 1e-6 m)."""
+    **Raises** ``ValueError`` for an unknown ``joint_target``, a bad band, a ``q0`` of the wrong
+    shape or not finite, or a ``q*`` that does not reach the stepped position (residual above 1e-6
+    m)."""
     if joint_target not in ("newton", "ik"):
         raise ValueError(f"joint_target: expected 'newton' or 'ik', got {joint_target!r}")
     if not (0 < band_fraction < 1):
         raise ValueError(f"band_fraction: must be in (0, 1), got {band_fraction}")
+    check_initial_state("q0", q0, arm.n_dof)
     sc = step_scenario(arm, step, horizon, ts, q0)
     q0 = arm.q0 if q0 is None else jnp.asarray(q0)
     band = band_fraction * float(np.linalg.norm(np.asarray(step, float)))
@@ -336,6 +338,7 @@ def tracking_experiment(arm: Arm, radius: float = 0.1, period: float = 2.0, hori
     error scale of the tracking loss (1 mm)."""
     from ._ik import ik_reference
 
+    check_initial_state("q0", q0, arm.n_dof)
     sc = circle_scenario(arm, radius, period, horizon=horizon, ts=ts, q0=q0)
     ik = ik_reference(arm, sc.reference, sc.obstacles, q0=q0)
     q0 = arm.q0 if q0 is None else jnp.asarray(q0)
