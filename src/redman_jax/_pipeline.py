@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._distributed import is_multiprocess, to_host
-from ._host import host_array, put, take, to_device
+from ._host import put, take, to_device
 from ._obstacles import compact_obstacles
 
 __all__ = ["build_case", "run_controller", "make_gains", "shard_batch", "study_shapes", "pad_case"]
@@ -179,44 +179,20 @@ def study_shapes(cases, ts: float = 0.01) -> dict:
 _SHARED_MAX_SLOTS = 32
 
 
-def _pad_rows(x, N: int, fill=None):
-    """Pad axis 1 (samples) of a batched array to ``N`` rows: ``fill``, or the last row repeated."""
-    x = put(x)
-    extra = N - x.shape[1]
-    if extra <= 0:
-        return x
-    h = host_array(x)  # concrete: in NumPy (eager jnp compiles per shape)
-    xp, x = (jnp, x) if h is None else (np, h)
-    if fill is None:
-        tail = xp.repeat(x[:, -1:], extra, axis=1)
-    else:
-        tail = xp.full((x.shape[0], extra) + x.shape[2:], fill, x.dtype)
-    out = xp.concatenate([x, tail], axis=1)
-    return out if h is None else put(out)
-
-
 def pad_case(scen, ik, shapes):
     """Scenarios (batched) and IK results (an ``IKResult`` or ``(q, qd, qdd)``) padded to ``shapes = (N, caps)``: reference and joint
     reference rows past the capacity are invalid samples (``mask`` False, the last row repeated;
     the simulator freezes the loop there), obstacle slots are masked. The scene's static case name
     becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation."""
-    from ._obstacles import pad_obstacles
-    from ._scenario import Reference, Scenario
+    from ._scenario import pad_rows, pad_scenario
 
     N, caps = shapes
-    ref = scen.reference
-    N = max(int(N), ref.capacity)
+    N = max(int(N), scen.reference.capacity)
     caps = tuple(max(a, b) for a, b in zip(caps, scen.obstacles.capacities))
-    ref = Reference(p=_pad_rows(ref.p, N), v=_pad_rows(ref.v, N), a=_pad_rows(ref.a, N),
-                    quat=_pad_rows(ref.quat, N), omega=_pad_rows(ref.omega, N),
-                    omega_dot=_pad_rows(ref.omega_dot, N), rot=_pad_rows(ref.rot, N),
-                    mask=_pad_rows(ref.mask, N, False), n_samples=ref.n_samples, ts=ref.ts)
-    scen = Scenario(obstacles=pad_obstacles(scen.obstacles, caps), goal_p=scen.goal_p,
-                    goal_quat=scen.goal_quat, reference=ref, seed=scen.seed, seed_used=scen.seed_used,
-                    valid=scen.valid, case="custom")
+    scen = pad_scenario(scen, N, caps)
     q, qd, qdd = (put(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
-    ik = (_pad_rows(q, N), _pad_rows(qd, N + qd.shape[1] - q.shape[1]),
-          _pad_rows(qdd, N + qdd.shape[1] - q.shape[1]))
+    ik = (pad_rows(q, N, 1), pad_rows(qd, N + qd.shape[1] - q.shape[1], 1),
+          pad_rows(qdd, N + qdd.shape[1] - q.shape[1], 1))
     return scen, ik
 
 

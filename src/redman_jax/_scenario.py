@@ -106,7 +106,7 @@ def stack_scenarios(scenarios, pad: bool = False) -> Scenario:
         N = max(s.reference.capacity for s in scenarios)
         caps = tuple(max(c) for c in zip(*(s.obstacles.capacities for s in scenarios)))
         case = scenarios[0].case if len({s.case for s in scenarios}) == 1 else "custom"
-        scenarios = [_padded(s, N, caps, case) for s in scenarios]
+        scenarios = [pad_scenario(s, N, caps, case) for s in scenarios]
     else:
         first = shapes(scenarios[0])
         for i, s in enumerate(scenarios[1:], 1):
@@ -118,22 +118,35 @@ def stack_scenarios(scenarios, pad: bool = False) -> Scenario:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *scenarios)
 
 
-def _padded(s: Scenario, N: int, caps: tuple, case: str) -> Scenario:
-    """``s`` with its reference padded to ``N`` samples (the last row repeated, ``mask`` False) and
-    its obstacle families to ``caps`` (masked slots)."""
+def pad_rows(x, N: int, axis: int = 0, fill=None):
+    """``x`` with its sample axis ``axis`` padded to ``N`` rows: ``fill``, or the last row repeated
+    (unchanged if it has ``N`` or more). Concrete arrays are padded in NumPy (an eager ``jnp``
+    operation compiles once per shape)."""
+    x = put(x)
+    extra = N - x.shape[axis]
+    if extra <= 0:
+        return x
+    h = host_array(x)
+    xp, v = (jnp, x) if h is None else (np, h)
+    if fill is None:
+        tail = xp.repeat(v[(slice(None),) * axis + (slice(-1, None),)], extra, axis=axis)
+    else:
+        tail = xp.full(v.shape[:axis] + (extra,) + v.shape[axis + 1:], fill, v.dtype)
+    out = xp.concatenate([v, tail], axis=axis)
+    return out if h is None else put(out)
+
+
+def pad_scenario(s: Scenario, N: int, caps: tuple, case: str = "custom") -> Scenario:
+    """``s`` (single or with a leading batch axis) with its reference padded to ``N`` samples (the
+    last row repeated, ``mask`` False: invalid samples, where the simulator freezes the loop) and
+    its obstacle families to the capacities ``caps`` (masked slots); its static case name ``case``."""
     from ._obstacles import pad_obstacles
 
     ref = s.reference
-    extra = N - ref.capacity
+    ax = ref.p.ndim - 2  # the samples' axis
 
-    def rows(x, fill=None):  # concrete: in NumPy (eager jnp compiles once per shape)
-        if extra == 0:
-            return x
-        h = host_array(x)
-        xp, v = (jnp, x) if h is None else (np, h)
-        tail = xp.repeat(v[-1:], extra, axis=0) if fill is None else xp.full((extra,) + v.shape[1:], fill, v.dtype)
-        out = xp.concatenate([v, tail])
-        return out if h is None else put(out)
+    def rows(x, fill=None):
+        return pad_rows(x, N, ax, fill)
 
     ref = Reference(p=rows(ref.p), v=rows(ref.v), a=rows(ref.a), quat=rows(ref.quat), omega=rows(ref.omega),
                     omega_dot=rows(ref.omega_dot), rot=rows(ref.rot), mask=rows(ref.mask, False),
