@@ -68,12 +68,10 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
     ``goal_quat`` ``(4,)``, w first) and an empty buffer of ``buffer_size`` virtual obstacles.
     **Raises** ``ValueError`` naming the argument for a wrong shape or (where concrete) a
     non-finite goal, or a ``buffer_size`` below 1."""
-    from ._math import check_count, check_finite
+    from ._math import check_count, check_shape_finite
 
-    for name, x, shape in (("goal_p", goal_p, (3,)), ("goal_quat", goal_quat, (4,))):
-        if tuple(jnp.shape(x)) != shape:
-            raise ValueError(f"{name}: expected shape {shape}, got {tuple(jnp.shape(x))}")
-        check_finite(name, x)
+    check_shape_finite("goal_p", goal_p, (3,))
+    check_shape_finite("goal_quat", goal_quat, (4,))
     check_count("buffer_size", buffer_size, 1)
     dtype = jnp.asarray(goal_p).dtype
     return Environment(

@@ -30,7 +30,7 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
-from ._math import (as_float, as_float_or_none, check_count, check_finite, check_positive, check_tolerances,
+from ._math import (as_float, as_float_or_none, check_count, check_positive, check_shape_finite, check_tolerances,
                     resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
@@ -303,9 +303,7 @@ def _check_points(x0, goal_p, shape) -> None:
     """The perfect controller's start and goal: of ``shape`` and, where concrete, finite (a NaN
     start or goal ran the descent in NaN and reported a silent failure)."""
     for name, x in (("x0", x0), ("goal_p", goal_p)):
-        if tuple(x.shape) != shape:
-            raise ValueError(f"{name}: expected shape {shape}, got {tuple(x.shape)}")
-        check_finite(name, x)
+        check_shape_finite(name, x, shape)
 
 
 def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams | None = None) -> PerfectResult:

@@ -239,13 +239,17 @@ def check_initial_state(name: str, x, n: int, R: int | None = None) -> None:
     """A given initial state (``q0`` or ``qd0``; None: the default): shape ``(n,)``, or ``(R, n)``
     per run of a batch of ``R`` (``R`` None: one run); where concrete, finite (a NaN there makes the
     whole run NaN, flagged as diverged, instead of saying which input was wrong)."""
-    if x is None:
-        return
-    shape = tuple(np.shape(x))
-    want = (n,) if R is None else (R, n)
-    if shape != want:
-        raise ValueError(f"{name}: expected shape {want} ({n}-DOF arm{'' if R is None else f', {R} runs'}), "
-                         f"got {shape}")
+    if x is not None:
+        check_shape_finite(name, x, (n,) if R is None else (R, n),
+                           f" ({n}-DOF arm{'' if R is None else f', {R} runs'})")
+
+
+def check_shape_finite(name: str, x, shape: tuple, about: str = "") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``x`` has ``shape`` (``about``: what the shape
+    follows from, in the message) and, where concrete, finite values (:func:`check_finite`)."""
+    got = tuple(np.shape(x))
+    if got != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}{about}, got {got}")
     check_finite(name, x)
 
 
