@@ -615,7 +615,7 @@ def main(argv=None):
 
     params = SimParams()
     # None (the default) means by the states' precision: float64's unless x64 is off
-    rtol, atol = (float(v) for v in tolerances(params, jnp.zeros(()).dtype))
+    rtol, atol = (float(v) for v in tolerances(params, jnp.result_type(float)))
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cpus (shared); python {platform.python_version()}")
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")

@@ -41,7 +41,7 @@ def main():
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
     solvers = args.solvers.split(",")
-    rtol, atol = tolerances(SimParams(), jnp.zeros(()).dtype)  # None: by the states' precision
+    rtol, atol = tolerances(SimParams(), jnp.result_type(float))  # None: by the states' precision
     print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}, rtol/atol {float(rtol):.0e}/{float(atol):.0e}")
     print(f"{'case':12s} {'controller':13s} {'solver':7s} {'steps max':>9s} {'mean':>7s} {'warm s':>7s} "
           f"{'time ratio':>10s} {'metrics vs ' + solvers[0]:>17s} flags")

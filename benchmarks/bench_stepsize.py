@@ -48,7 +48,7 @@ def main():
     arm = rj.thesis_arm(args.dof)
     seeds = parse_int_list(args.seeds, "seeds")
     base = SimParams()
-    base_tol = tolerances(base, jnp.zeros(()).dtype)  # None: by the states' precision
+    base_tol = tolerances(base, jnp.result_type(float))  # None: by the states' precision
     print(f"jax {jax.__version__}, {args.dof}-DOF arm, seeds {args.seeds}, solver {base.solver}, "
           f"rtol/atol {float(base_tol[0]):.0e}/{float(base_tol[1]):.0e}"
           + (f"; reference tsit5 {REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}" if args.reference else ""))
