@@ -247,6 +247,33 @@ def test_float32_smoke():
     np.testing.assert_allclose(fd32, fd64, rtol=1e-3, atol=1e-3 * np.abs(fd64).max())
 
 
+def test_float32_state_stays_float32_with_x64_on():
+    """The default ``LimitContact`` is float64; with float64 enabled it promoted a float32 arm's
+    and state's contact torque, forward dynamics and state derivative to float64. It takes the
+    state's dtype."""
+    from redman_jax._math import cast_floating
+
+    arm = cast_floating(thesis_arm(7), jnp.float32)
+    q, qd, tau = (jnp.asarray(x, jnp.float32) for x in _state(arm, 12))
+    q = q.at[2].set(arm.q_max[2] + 0.05)  # in contact, so the contact torque is not all zeros
+    outs = [joint_limit_torque(arm, q, qd), forward_dynamics(arm, q, qd, tau),
+            state_derivative(arm, jnp.concatenate([q, qd]), tau)]
+    assert [o.dtype for o in outs] == [jnp.float32] * 3
+    tau_lim = outs[0]
+    assert float(tau_lim[2]) > 0
+    ref = joint_limit_torque(thesis_arm(7), *(np.asarray(x, np.float64) for x in (q, qd)))
+    np.testing.assert_allclose(np.asarray(tau_lim), np.asarray(ref), rtol=1e-5, atol=1e-4)
+
+
+def test_limit_contact_refuses_negative_gains():
+    """A negative stiffness, damping or steepness turns the restoring torque around (it pushed a
+    joint 0.1 rad past its limit further out with -100 N m); each is refused by name."""
+    for name in ("k_p", "k_d", "steepness"):
+        with pytest.raises(ValueError, match=f"LimitContact.{name}"):
+            LimitContact(**{name: -1.0})
+    LimitContact(k_p=0.0, k_d=0.0, steepness=0.0)  # zero switches a term off
+
+
 def test_a_joint_vector_of_the_wrong_length_is_an_error_naming_it():
     """A state or torque of another length than the arm's joints would be read past its end (JAX
     clamps indices) or broadcast, giving numbers for a configuration nobody asked for; every public

@@ -44,7 +44,7 @@ from jax.scipy.linalg import cho_factor, cho_solve
 from jaxtyping import Array, Float
 
 from ._kinematics import Kinematics, joint_vector, kinematics
-from ._math import ad, as_float, check_finite_fields, skew
+from ._math import ad, as_float, cast_floating, check_finite_fields, check_positive, skew
 from ._robot import Arm
 
 __all__ = [
@@ -279,6 +279,8 @@ class LimitContact(eqx.Module):
 
     def __check_init__(self):
         check_finite_fields(self)
+        for name in ("k_p", "k_d", "steepness"):  # a negative one pushes the joint further out
+            check_positive(f"LimitContact.{name}", getattr(self, name), allow_zero=True)
 
 
 def joint_limit_torque(arm: Arm, q, qd, contact: LimitContact | None = None) -> Float[Array, " n"]:
@@ -290,6 +292,9 @@ def joint_limit_torque(arm: Arm, q, qd, contact: LimitContact | None = None) -> 
     """
     q, qd = joint_vector(arm, q, "q", "joint_limit_torque"), joint_vector(arm, qd, "qd", "joint_limit_torque")
     c = LimitContact() if contact is None else contact
+    dtype = jnp.result_type(q, qd)
+    if jnp.issubdtype(dtype, jnp.floating):  # the state's precision (the default is float64)
+        c = cast_floating(c, dtype)
     s = 1.0 - 1.0 / jnp.sqrt(1.0 + (c.steepness * qd) ** 2)
     damp = c.k_d * qd * s
     below = c.k_p * (q - arm.q_min) + jnp.where(qd < 0, damp, 0.0)
