@@ -188,3 +188,17 @@ def test_float32_smoke():
         J32 = np.asarray(jacobian(arm, q))
     J64 = np.asarray(jacobian(thesis_arm(9), np.asarray(q, np.float64)))
     np.testing.assert_allclose(J32, J64, atol=1e-5)
+
+
+def test_point_jacobian_refuses_a_link_out_of_range_and_a_point_of_another_shape():
+    """``link=-1`` gave an all-zero Jacobian and ``link=n`` the last link's; a 2-vector point was
+    crossed as a 2-vector. Each is a ``ValueError`` naming the argument; a traced link still works."""
+    arm = thesis_arm(7)
+    q, p = arm.q0, jnp.array([0.1, 0.2, 0.3])
+    for link in (-1, 7, 2.0):
+        with pytest.raises(ValueError, match="link must be an integer in \\[0, 7\\)"):
+            point_jacobian(arm, q, link, p)
+    with pytest.raises(ValueError, match="p_world must have shape \\(3,\\)"):
+        point_jacobian(arm, q, 3, p[:2])
+    J = jax.jit(lambda k: point_jacobian(arm, q, k, p))(3)
+    np.testing.assert_array_equal(np.asarray(J), np.asarray(point_jacobian(arm, q, np.int64(3), p)))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._math import rot_to_quat, skew
@@ -143,10 +144,23 @@ def jacobian(arm: Arm, q) -> Float[Array, "6 n"]:
 
 
 def point_jacobian(arm: Arm, q, link: int, p_world) -> Float[Array, "3 n"]:
-    """``3 x n`` Jacobian of a world point ``p_world`` rigidly attached to link ``link`` (0-based)."""
+    """``3 x n`` Jacobian of a world point ``p_world`` ``(3,)`` rigidly attached to link ``link``
+    (0-based, ``0 <= link < n``; a traced ``link`` is not range-checked).
+
+    Raises ``ValueError`` for a concrete ``link`` out of range (``-1`` would give a zero Jacobian,
+    ``n`` or more the last link's) or a ``p_world`` that is not a 3-vector."""
+    n = arm.n_dof
+    if not isinstance(link, jax.core.Tracer):
+        idx = np.asarray(link)
+        if idx.shape != () or idx.dtype.kind not in "iu" or not 0 <= int(idx) < n:
+            raise ValueError(f"point_jacobian: link must be an integer in [0, {n}) for this {n}-DOF arm, "
+                             f"got {link!r}")
+    p_world = jnp.asarray(p_world)
+    if p_world.shape != (3,):
+        raise ValueError(f"point_jacobian: p_world must have shape (3,), got {p_world.shape}")
     kin = kinematics(arm, q)
-    mask = (jnp.arange(arm.n_dof) <= link).astype(kin.S.dtype)
-    return _point_cols(kin.S, jnp.asarray(p_world)) * mask
+    mask = (jnp.arange(n) <= link).astype(kin.S.dtype)
+    return _point_cols(kin.S, p_world) * mask
 
 
 def link_jacobians(arm: Arm, q) -> Float[Array, "n 6 n"]:
@@ -162,8 +176,6 @@ def link_jacobians(arm: Arm, q) -> Float[Array, "n 6 n"]:
 
 def poi_link_index(arm: Arm):
     """Link index of each point of interest, ``(n * P,)`` (a NumPy array: structure, not data)."""
-    import numpy as np
-
     return np.repeat(np.arange(arm.n_dof), arm.points_per_link)
 
 
