@@ -1,5 +1,6 @@
 """URDF import/export: the Panda against Pinocchio, lumping, round trips, validation errors."""
 
+import dataclasses
 import math
 import xml.etree.ElementTree as ET
 
@@ -116,6 +117,11 @@ def test_rpy_round_trip():
     for rpy in list(rng.uniform(-3, 3, (20, 3))) + [np.array([0.3, np.pi / 2, 0.0]), np.array([0.3, -np.pi / 2, 0.0])]:
         R = rpy_to_matrix(rpy)
         np.testing.assert_allclose(rpy_to_matrix(matrix_to_rpy(R)), R, atol=1e-12)
+    # near gimbal lock asin(-R20) lost digits (9.6e-9 at pi/2 - 1e-8); atan2 keeps them
+    for d in (1e-4, 1e-6, 1e-8, 1e-10):
+        for sgn in (1.0, -1.0):
+            R = rpy_to_matrix([0.3, sgn * (np.pi / 2 - d), -0.7])
+            np.testing.assert_allclose(rpy_to_matrix(matrix_to_rpy(R)), R, atol=1e-14)
     # URDF convention: R = Rz(yaw) Ry(pitch) Rx(roll)
     np.testing.assert_allclose(rpy_to_matrix([0, 0, np.pi / 2]) @ [1, 0, 0], [0, 1, 0], atol=1e-15)
     np.testing.assert_allclose(rpy_to_matrix([np.pi / 2, 0, 0]) @ [0, 1, 0], [0, 0, 1], atol=1e-15)
@@ -252,3 +258,17 @@ def test_to_urdf_rejects_what_urdf_cannot_express():
     with pytest.raises(ValueError, match="prismatic"):
         to_urdf(unlimited)
     assert math.isfinite(float(from_urdf_string(to_urdf(arm), "ee").masses.sum()))
+
+
+def test_to_urdf_refuses_a_tip_link_whose_names_are_taken():
+    """A ``tip_link`` named ``base`` or ``link3``, or whose fixed joint ``{tip_link}_joint`` is a
+    joint of the arm, wrote a URDF with a name defined twice (an error only when read back)."""
+    arm = thesis_arm(7)
+    for tip in ("base", "link3", "link7", ""):
+        with pytest.raises(ValueError, match="tip_link"):
+            to_urdf(arm, tip_link=tip)
+    named = dataclasses.replace(arm, joint_names=("ee_joint", "b", "c", "d", "e", "f", "g"))
+    with pytest.raises(ValueError, match="tip_link 'ee' names its fixed joint ee_joint"):
+        to_urdf(named)  # the default tip_link "ee"
+    back = from_urdf_string(to_urdf(arm, tip_link="link8"), "link8")  # not a link of a 7-DOF arm
+    assert back.n_dof == 7

@@ -72,9 +72,9 @@ def rpy_to_matrix(rpy: Sequence[float]) -> np.ndarray:
 def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
     """Inverse of :func:`rpy_to_matrix` (pitch in ``[-pi/2, pi/2]``; yaw = 0 at gimbal lock)."""
     R = np.asarray(R, dtype=float)
-    sp = -R[2, 0]
-    pitch = math.asin(max(-1.0, min(1.0, sp)))
-    if math.hypot(R[2, 1], R[2, 2]) < 1e-12:  # cos(pitch) = 0: roll and yaw are coupled
+    cp = math.hypot(R[2, 1], R[2, 2])
+    pitch = math.atan2(-R[2, 0], cp)  # asin(-R20) loses digits near +-pi/2 (error ~ 1e-16 / cos)
+    if cp < 1e-12:  # cos(pitch) = 0: roll and yaw are coupled
         return np.array([math.atan2(-R[1, 2], R[1, 1]), pitch, 0.0])
     return np.array([math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])])
 
@@ -430,7 +430,8 @@ def to_urdf(arm: Arm, *, robot_name: str | None = None, tip_link: str = "ee") ->
     URDF field (``from_urdf`` recomputes ``seg_ends`` from the joint origins).
 
     **Raises:** ``ValueError`` for an arm URDF cannot express: a revolute axis that misses its link
-    frame origin, or an unlimited prismatic joint.
+    frame origin, or an unlimited prismatic joint; and for a ``tip_link`` whose link or joint name
+    is taken (``base``, ``link1`` ...; ``{tip_link}_joint`` among the joint names).
     """
     n = arm.n_dof
     S = np.asarray(arm.screw_axes, dtype=float)
@@ -443,6 +444,13 @@ def to_urdf(arm: Arm, *, robot_name: str | None = None, tip_link: str = "ee") ->
     names = list(arm.joint_names)
     if len(set(names)) != n:
         names = [f"joint{k + 1}_{nm}" for k, nm in enumerate(names)]
+    links = ["base"] + [f"link{k + 1}" for k in range(n)]
+    if not isinstance(tip_link, str) or not tip_link or tip_link in links:
+        raise ValueError(f"to_urdf: tip_link must be a link name other than base, link1 ... link{n}, "
+                         f"got {tip_link!r}")
+    if f"{tip_link}_joint" in names:
+        raise ValueError(f"to_urdf: tip_link {tip_link!r} names its fixed joint {tip_link}_joint, "
+                         f"which is already a joint of the arm; choose another tip_link")
     robot = ET.Element("robot", name=robot_name or arm.name)
     ET.SubElement(robot, "link", name="base")
     parent, T_parent = "base", np.eye(4)
