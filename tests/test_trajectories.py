@@ -13,6 +13,7 @@ from redman_jax._trajectories import (
     arc_segment,
     assemble_reference,
     concat_segments,
+    constant_segment,
     line_segment,
     min_rotation,
     polyline,
@@ -68,6 +69,26 @@ def test_trapezoid_zero_length_and_bad_input():
         trapezoid_profile(0.3, v_max=0.0)
     with pytest.raises(ValueError, match="ts"):
         trapezoid_profile(0.3, ts=float("nan"))
+
+
+@pytest.mark.parametrize("length", [0.5, 0.7, 1.0, 1.23, 2 * 0.1**2, 2 * 0.37**2])
+def test_trapezoid_acceleration_is_the_one_acting_after_each_sample(length):
+    """Lengths whose phase switches fall on samples (cruise: ``l/v`` a multiple of ts; triangle:
+    ``sqrt(l/a)`` one): the acceleration held over each interval takes the velocity to the next
+    sample's exactly. The sample where the braking starts had ``0`` (1.0 and the triangle peak of
+    0.02: the velocity off by ``a ts``), now ``-a``."""
+    t, s, sd, sdd = trapezoid_profile(length, V, A, TS)
+    np.testing.assert_allclose(sd[1:], sd[:-1] + sdd[:-1] * np.diff(t), atol=ROUND)
+    np.testing.assert_allclose(s[1:], s[:-1] + sd[:-1] * np.diff(t) + 0.5 * sdd[:-1] * np.diff(t) ** 2,
+                               atol=ROUND)
+
+
+def test_trapezoid_no_sample_just_before_the_end():
+    """A duration a hair (5e-10 s) past a multiple of ts left a sample 5e-10 s before ``T`` that
+    held ``-a`` for a whole ts from rest (the tolerance was applied in samples, not seconds)."""
+    t, s, sd, sdd = trapezoid_profile(0.5 + 5e-10, V, A, TS)
+    assert np.min(np.diff(t)) > TS / 2
+    np.testing.assert_allclose(sd[1:], sd[:-1] + sdd[:-1] * np.diff(t), atol=1e-8)
 
 
 def _rand_quat(rng):
@@ -186,6 +207,32 @@ def test_degenerate_directions_raise_naming_the_argument():
     for make, name in cases:
         with pytest.raises(ValueError, match=name):
             make()
+
+
+def test_bad_segment_inputs_raise_naming_the_argument():
+    """Inputs that gave NaN samples (a zero quaternion or NaN point for a hold, a zero row
+    direction), an empty hold that failed later in ``concat_segments``, an orientation flag other
+    than 0 or 1, and arc arguments reported under another name."""
+    q, z = np.array([1.0, 0, 0, 0]), np.zeros(3)
+    n, e1 = np.array([0.0, 0, 1]), np.array([1.0, 0, 0])
+    cases = [
+        (lambda: constant_segment(z, np.zeros(4)), "quat:"),
+        (lambda: constant_segment([np.nan, 0, 0], q), "p:"),
+        (lambda: constant_segment(z, q, 0), "n:"),
+        (lambda: constant_segment(z, q, rot=0.5), "rot:"),
+        (lambda: line_segment(z, [0.1, 0, 0], rot=np.nan), "rot:"),
+        (lambda: arc_segment(z, n, e1, 0.1, 0.0, q, angle=-1.0), "angle:"),
+        (lambda: arc_segment(z, n, e1, 0.1, 0.0, q, speed=0.0), "speed:"),
+        (lambda: zigzag_points(z, z, n, 0.2, [0.0]), "row_dir:"),
+        (lambda: zigzag_points(z, e1, n, -0.2, [0.0]), "width:"),
+        (lambda: zigzag_points(z, e1, n, 0.2, [np.nan]), "rows:"),
+    ]
+    for make, name in cases:
+        with pytest.raises(ValueError, match=name):
+            make()
+    hold = constant_segment([0, 0, 1], [2.0, 0, 0, 0], 3, rot=1)
+    np.testing.assert_array_equal(hold.quat, np.tile(q, (3, 1)))
+    np.testing.assert_array_equal(hold.rot, np.ones(3))
 
 
 def test_zigzag_every_leg_rest_to_rest():

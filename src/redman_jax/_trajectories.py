@@ -137,6 +137,15 @@ def _unit(x, name: str, size: int = 3) -> np.ndarray:
     return x / n
 
 
+def _flag(rot) -> float:
+    """The orientation flag ``rot`` as 0.0 or 1.0; ``ValueError`` naming it otherwise (the
+    controllers switch at 0.5, a NaN flag would switch orientation control off unnoticed)."""
+    v = float(rot)
+    if v not in (0.0, 1.0):
+        raise ValueError(f"rot: expected 0 or 1 (orientation control off / on), got {rot!r}")
+    return v
+
+
 def min_rotation(a: np.ndarray) -> np.ndarray:
     """The minimal rotation taking ``e_z`` to the unit vector ``a`` (SPEC section 4, ``R_goal``).
 
@@ -229,13 +238,15 @@ def trapezoid_profile(length: float, v_max: float = 1.0, a_max: float = 2.0, ts:
     else:
         ta = math.sqrt(length / a_max)
         vp, T = a_max * ta, 2 * ta
-    n = int(math.ceil(T / ts - _EPS_T))
+    n = max(1, int(math.ceil((T - _EPS_T) / ts)))  # samples k ts < T - _EPS_T, and t = 0
     t = np.append(np.arange(n) * ts, T)
     s = np.empty_like(t)
     sd = np.empty_like(t)
     sdd = np.empty_like(t)
-    up = t < ta
-    down = t > T - ta
+    # the phase acting right after each instant: a sample at the start of the braking (the peak
+    # of a triangle, or l/v a multiple of ts) brakes, one at the end of the ramp-up cruises
+    up = t < ta - _EPS_T
+    down = t >= T - ta - _EPS_T
     cruise = ~up & ~down
     s[up] = 0.5 * a_max * t[up] ** 2
     sd[up] = a_max * t[up]
@@ -283,17 +294,24 @@ def line_segment(p_a, p_b, quat_a=None, quat_b=None, *, rot: float = 0.0, v_max:
     return Segment(
         p=p, v=sd[:, None] * u, a=sdd[:, None] * u, quat=quat,
         omega=(sigd * phi)[:, None] * w_axis, omega_dot=(sigdd * phi)[:, None] * w_axis,
-        rot=np.full(len(t), float(rot)), t=t,
+        rot=np.full(len(t), _flag(rot)), t=t,
     )
 
 
 def constant_segment(p, quat, n: int = 1, *, rot: float = 0.0, ts: float = 0.01) -> Segment:
-    """``n`` samples at rest at the pose ``(p, quat)`` (a hold)."""
-    p = np.broadcast_to(np.asarray(p, float), (n, 3)).copy()
-    q = np.broadcast_to(np.asarray(quat, float) / np.linalg.norm(quat), (n, 4)).copy()
+    """``n >= 1`` samples at rest at the pose ``(p, quat)`` (a hold).
+
+    Raises ``ValueError`` naming the argument for a non-finite ``p``, a zero or non-finite
+    ``quat``, ``n < 1``, a ``rot`` other than 0 or 1, or a non-positive ``ts``."""
+    p, quat = _point(p, "p"), _unit(quat, "quat", 4)
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n: expected an integer number of samples >= 1, got {n!r}")
+    if not (np.isfinite(ts) and ts > 0):
+        raise ValueError(f"ts: must be a positive finite sample time, got {ts!r}")
+    n = int(n)
     z = np.zeros((n, 3))
-    return Segment(p=p, v=z, a=z.copy(), quat=q, omega=z.copy(), omega_dot=z.copy(),
-                   rot=np.full(n, float(rot)), t=np.arange(n) * ts)
+    return Segment(p=np.tile(p, (n, 1)), v=z, a=z.copy(), quat=np.tile(quat, (n, 1)), omega=z.copy(),
+                   omega_dot=z.copy(), rot=np.full(n, _flag(rot)), t=np.arange(n) * ts)
 
 
 def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angle: float = 2 * math.pi,
@@ -321,6 +339,10 @@ def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angl
         raise ValueError(f"radius: must be positive, got {radius!r}")
     if direction not in (1, -1):
         raise ValueError(f"direction: must be +1 or -1, got {direction!r}")
+    if not (np.isfinite(angle) and angle > 0):
+        raise ValueError(f"angle: must be a positive finite arc angle [rad], got {angle!r}")
+    if not (np.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed: must be a positive finite speed, got {speed!r}")
     t, s, sd, sdd = trapezoid_profile(radius * angle, speed, a_max, ts)
     th = theta0 + direction * s / radius
     thd = direction * sd / radius
@@ -333,7 +355,7 @@ def arc_segment(center, normal, e1, radius: float, theta0: float, quat0, *, angl
     q0 = _unit(quat0, "quat0", 4)
     quat = quat_mul(axis_angle_quat(n, th - theta0), q0)
     return Segment(p=p, v=v, a=a, quat=quat, omega=thd[:, None] * n, omega_dot=thdd[:, None] * n,
-                   rot=np.full(len(t), float(rot)), t=t)
+                   rot=np.full(len(t), _flag(rot)), t=t)
 
 
 def polyline(points, quat, *, rot: float = 0.0, v_max: float = 1.0, a_max: float = 2.0,
@@ -348,10 +370,12 @@ def zigzag_points(origin, row_dir, step_dir, width: float, rows) -> np.ndarray:
     """Vertices of a zig-zag scan (SPEC U15): rows of ``width`` along ``row_dir`` centred on
     ``origin + h step_dir`` for each offset ``h`` in ``rows``, alternating direction; the legs
     are the rows and the steps between their ends. Returns ``(2 len(rows), 3)``."""
-    o = np.asarray(origin, float)
-    r = np.asarray(row_dir, float)
-    r = r / np.linalg.norm(r)
-    st = np.asarray(step_dir, float)
+    o, r, st = _point(origin, "origin"), _unit(row_dir, "row_dir"), _point(step_dir, "step_dir")
+    if not (np.isfinite(width) and width > 0):
+        raise ValueError(f"width: must be a positive finite length, got {width!r}")
+    rows = np.asarray(rows, float)
+    if rows.ndim != 1 or not np.all(np.isfinite(rows)):
+        raise ValueError(f"rows: expected a 1-D sequence of finite offsets, got {rows}")
     pts = []
     for i, h in enumerate(rows):
         sgn = 1.0 if i % 2 == 0 else -1.0
