@@ -555,6 +555,12 @@ def test_a_non_finite_gain_is_an_error_naming_it_when_concrete():
         gains_type(**{field: -1.0})  # negative: an unusual choice, not an error
     with pytest.raises(ValueError, match="PolicyGains.gamma"):
         PolicyGains(gamma=float("inf"))
+    # the obstacle potential's amplitude and range as FieldParams takes them (0 or a negative range
+    # switched the policy off, a negative amplitude made it attract), and the damping's sign
+    for kw in ({"obs_D": 0.0}, {"obs_D": -0.75}, {"obs_a": -0.05}, {"obs_a": 0.0}, {"lam_floor": -0.01}):
+        with pytest.raises(ValueError, match=f"PolicyGains.{next(iter(kw))}: expected a finite"):
+            PolicyGains(**kw)
+    PolicyGains(gamma=-1.0, alpha=0.0)  # gains: any sign, as the controllers'
     with pytest.raises(ValueError, match="LimitContact.k_d"):
         rj.LimitContact(k_d=float("nan"))
     G = type(CONTROLLERS["velocity"]().default_gains())
@@ -566,14 +572,17 @@ def test_a_non_finite_gain_is_an_error_naming_it_when_concrete():
 
 
 def test_make_environment_refuses_bad_goals_by_name():
-    """A goal of the wrong shape or, where concrete, not finite is refused where the environment is
-    built (before, a 2-vector goal built an Environment and a NaN goal made every command NaN);
+    """A goal of the wrong shape or, where concrete, not finite or not a unit quaternion is refused
+    where the environment is built (before, a 2-vector goal built an Environment and a NaN goal made every command NaN);
     traced goals (the simulator's vmap) pass."""
     good_p, good_q = jnp.array([0.3, 0.2, 0.8]), jnp.array([1.0, 0.0, 0.0, 0.0])
     for p, q, match in [(good_p[:2], good_q, r"^goal_p: expected shape \(3,\)"),
                         (good_p, good_q[:3], r"^goal_quat: expected shape \(4,\)"),
                         (good_p.at[1].set(jnp.nan), good_q, "^goal_p: expected finite values"),
-                        (good_p, good_q * jnp.inf, "^goal_quat: expected finite values")]:
+                        (good_p, good_q * jnp.inf, "^goal_quat: expected finite values"),
+                        # a zero quaternion switched orientation control off, a longer one scaled its gain
+                        (good_p, jnp.zeros(4), "^goal_quat: expected a unit quaternion"),
+                        (good_p, 2 * good_q, "^goal_quat: expected a unit quaternion")]:
         with pytest.raises(ValueError, match=match):
             make_environment(EMPTY, p, q)
     with pytest.raises(ValueError, match="^buffer_size"):

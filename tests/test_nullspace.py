@@ -359,6 +359,37 @@ def test_obstacle_gradient_tangent_is_the_field_hessian(form, rng):
     np.testing.assert_array_less(np.abs(a - b) / (np.linalg.norm(b, axis=1, keepdims=True) + 1e-6), 1e-9)
 
 
+def test_obstacle_gradient_tangent_next_to_a_surface_in_both_precisions():
+    """Within the clamp of a box face or a cylinder's mantle (here 1e-4 to 1e-12 m outside) the
+    Hessian of the clamped field is exact: ``V'' = 0``, so along a face nothing, and along the
+    mantle only the curvature ``V' de_rho/dt``. The tangent rule used to form it as the difference
+    of two terms of order ``V' / rho`` from one quotient ``1 / (r^5 rho^3)``: rounding noise in
+    float64 and, where that product fell below float32's range, inf - inf = NaN (which reached the
+    original velocity OSC's torque). Now the face's tangent is exactly zero in both precisions, and
+    the mantle's in float32 is float64's to float32 rounding."""
+    from redman_jax._obstacles import make_obstacles
+
+    def obstacles(dtype):
+        return rj.cast_floating(make_obstacles(boxes=[(np.eye(3), [0.0, 0, 0], [0.1, 0.1, 0.1])],
+                                               cylinders=[(np.eye(3), [-1.0, 0, 0], [0.1, 0.1])]), dtype)
+
+    v = np.array([0.3, -0.2, 0.1])
+    for eps in (1e-4, 1e-6, 1e-8, 1e-12):
+        face, mantle = np.array([0.1 + eps, 0.0, 0.05]), np.array([-0.9 + eps, 0.0, 0.05])
+        out = {}
+        for dtype in (jnp.float32, jnp.float64):
+            obs = obstacles(dtype)
+            tangent = jax.jit(lambda x, obs=obs, dtype=dtype: jax.jvp(
+                lambda y: obstacle_gradients(obs, y[None], 0.05, 0.75)[0], (x,), (jnp.asarray(v, dtype),))[1])
+            t_face, t_mantle = (np.asarray(tangent(jnp.asarray(x, dtype))) for x in (face, mantle))
+            assert np.all(t_face == 0), (dtype, eps, t_face)
+            assert np.all(np.isfinite(t_mantle)) and t_mantle[0] == 0, (dtype, eps, t_mantle)
+            out[dtype] = t_mantle
+        # float32 rounds the point (by up to 2.4e-8 m), which moves this term by 1e-6 of itself
+        np.testing.assert_allclose(out[jnp.float32], out[jnp.float64], rtol=1e-5)
+        assert abs(out[jnp.float64][1]) > 1e9  # the curvature term: V'(clamp) * v_y / rho
+
+
 def test_obstacle_policy_is_potential_descent(arm9, rng):
     """Point mode (3.34 corrected, E9) equals -gamma d/dq sum_poi V_o(x_poi(q)) (``jax.grad`` through
     the exact POI positions, the telescoping lift included), and a small step along it increases the

@@ -20,6 +20,7 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._obstacles import ObstacleSet
@@ -65,19 +66,25 @@ class Environment(eqx.Module):
 
 def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int = 20) -> Environment:
     """What a controller sees of the world: the obstacles, the goal pose (``goal_p`` ``(3,)``,
-    ``goal_quat`` ``(4,)``, w first) and an empty buffer of ``buffer_size`` virtual obstacles.
+    ``goal_quat`` ``(4,)``, w first, unit) and an empty buffer of ``buffer_size`` virtual obstacles.
     **Raises** ``ValueError`` naming the argument for a wrong shape or (where concrete) a
-    non-finite goal, or a ``buffer_size`` below 1."""
-    from ._math import check_count, check_shape_finite
+    non-finite goal or a quaternion that is not unit (a zero one turned orientation control off
+    unnoticed, a longer one scaled its gain), or a ``buffer_size`` below 1."""
+    from ._math import check_count, check_shape_finite, concrete
 
     check_shape_finite("goal_p", goal_p, (3,))
     check_shape_finite("goal_quat", goal_quat, (4,))
+    q = concrete(goal_quat)
+    if q is not None and abs(float(np.linalg.norm(q)) - 1.0) > 1e-5:  # zero: orientation off; 2x: gain 2x
+        raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q} (norm "
+                         f"{float(np.linalg.norm(q)):.6g})")
     check_count("buffer_size", buffer_size, 1)
     dtype = jnp.asarray(goal_p).dtype
+    dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)  # integer goals
     return Environment(
         obstacles=obstacles,
-        goal_p=jnp.asarray(goal_p),
-        goal_quat=jnp.asarray(goal_quat),
+        goal_p=jnp.asarray(goal_p, dtype),
+        goal_quat=jnp.asarray(goal_quat, jnp.result_type(jnp.asarray(goal_quat).dtype, dtype)),
         virtual_p=jnp.zeros((buffer_size, 3), dtype),
         virtual_mask=jnp.zeros((buffer_size,), bool),
     )

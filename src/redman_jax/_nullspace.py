@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._math import as_float, check_finite_fields
+from ._math import as_float, check_finite_fields, check_positive
 from jaxtyping import Array, Float
 
 from ._kinematics import Kinematics, poi_positions_from
@@ -106,6 +106,13 @@ class PolicyGains(eqx.Module):
 
     def __check_init__(self):
         check_finite_fields(self)
+        # where concrete, the potential's parameters as FieldParams takes them (a range <= 0
+        # switched the obstacle policy off unnoticed, an amplitude < 0 made it attract) and the
+        # damping of 3.32, a length; the gains, like the controllers', may take any sign
+        for name in ("obs_a", "obs_D"):
+            check_positive(f"PolicyGains.{name}", getattr(self, name))
+        for name in ("lam_ratio", "lam_floor"):
+            check_positive(f"PolicyGains.{name}", getattr(self, name), allow_zero=True)
 
 
 def ik_policy_gains() -> PolicyGains:
@@ -515,59 +522,65 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
     """The directional derivative of :func:`_slot_gradient` along point velocities ``V`` (three
     ``(m,)`` planes): ``d/dt grad V_o(x) = Hess V_o(x) xdot``, analytic.
 
-    With ``n`` the (unclamped) sdf gradient, ``c = V_o' / rho`` the magnitude over the distance
-    ``rho`` that ``n`` is normalised by and ``V_o''`` the slope of ``V_o'(max(sdf, clamp))`` (zero
-    at or below the clamp, beyond ``D`` and on masked slots): ``d/dt (c u) = (V_o'' - c)(u . v) /
-    rho^2 u + c du/dt`` for the unnormalised direction ``u`` (sphere: ``x - p``; box outside: the
-    outward offset ``o`` with its signs; cylinder outside: ``(o_1 e_rho, o_2 s_z)``), whose
-    derivative is ``v`` on its active components (plus ``o_1 de_rho/dt`` on a cylinder). Inside a
-    box the normal is constant and the magnitude clamped: zero; inside a cylinder's mantle the
-    curvature ``V_o' de_rho/dt`` remains (SPEC U3). One division per point and slot, as in
-    :func:`_slot_gradient`. Equal to ``H v`` with ``H`` the forward Jacobian of the reference
-    formulation :func:`~redman_jax._fields.obstacle_field_gradient` to rounding, more than 2 mm
-    from any surface (closer, the clamp makes both cancel terms of order 1e15; tested).
+    The gradient is ``V_o'(r) n`` with ``r = max(sdf, clamp)`` and ``n = u / rho`` the unit
+    direction of the unnormalised ``u`` (sphere: ``x - p``; box outside: the outward offset ``o``
+    with its signs; cylinder outside: ``(o_1 e_rho, o_2 s_z)``), ``rho = |u|``. So
+    ``d/dt grad = A (n . du) n + B (du - (n . du) n)`` with ``A = V_o''`` (zero at or below the
+    clamp, beyond ``D`` and on masked slots), ``B = V_o' / rho`` and ``du = du/dt`` (``v`` on the
+    active components, plus ``o_1 de_rho/dt`` on a cylinder). The second term, the turning of ``n``,
+    is zero where ``u`` has one active component (a box face, a cylinder's mantle or cap: ``n``
+    is constant there) and is then left out rather than computed as a difference of two terms of
+    order ``V_o' / rho``, which near a surface cancelled to rounding noise and in float32 overflowed
+    (NaN within 2e-8 m of a face). Inside a box the normal is constant and the magnitude clamped:
+    zero; inside a cylinder's mantle the curvature ``V_o' de_rho/dt`` remains (SPEC U3). One
+    division per point and slot, as in :func:`_slot_gradient`. Equal to ``H v`` with ``H`` the
+    forward Jacobian of the reference formulation
+    :func:`~redman_jax._fields.obstacle_field_gradient` to rounding (tested).
     """
     d = tuple(X[j] - p[j] for j in range(3))
 
     def coefs(sdf, rho):
-        """``(c, (V'' - c) / rho^2)`` from one quotient ``1 / (r^5 rho^3)``."""
+        """``(A, B, 1 / rho)`` from one quotient ``1 / (r^5 rho)`` (``rho > 0``)."""
         r, num, dnum = _clamped_numerator(sdf, mask, a, D, form, clamp)
         # r^5 V'' = r^5 d(num / r^4)/dr, zero where the clamp holds r
         slope5 = jnp.where(sdf > clamp, dnum * r - 4.0 * num, 0.0)
         r2 = r * r
-        rho2 = rho * rho
-        quot = 1.0 / jnp.where(rho > 0, r2 * r2 * r * rho2 * rho, 1.0)
-        return num * r * rho2 * quot, (slope5 * rho - num * r) * quot
+        r5 = r2 * r2 * r
+        inv = 1.0 / jnp.where(rho > 0, r5 * rho, 1.0)
+        return slope5 * rho * inv, num * r * inv, r5 * inv
 
     if kind == "spheres":
         r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
         pos = r2 > 0
         rho = jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
-        c, k = coefs(rho - dims[0], rho)
-        alpha = jnp.where(pos, k * (d[0] * V[0] + d[1] * V[1] + d[2] * V[2]), 0.0)
-        c = jnp.where(pos, c, 0.0)
-        return tuple(alpha * d[j] + c * V[j] for j in range(3))
+        A, B, irho = coefs(rho - dims[0], rho)
+        B = jnp.where(pos, B, 0.0)
+        # (A - B)(n . v) n with n = d / rho, as one coefficient of d: (n . v) first (bounded)
+        alpha = jnp.where(pos, (A - B) * ((d[0] * V[0] + d[1] * V[1] + d[2] * V[2]) * irho) * irho, 0.0)
+        return tuple(alpha * d[j] + B * V[j] for j in range(3))
     xl = _to_slot(R, d)  # R^T (x - p)
     vl = _to_slot(R, V)  # R^T v
     if kind == "boxes":
         u = [jnp.abs(xl[i]) - dims[i] for i in range(3)]
-        o = [jnp.where(v > 0, v, 0.0) for v in u]
+        act = [v > 0 for v in u]
+        o = [jnp.where(act[i], u[i], 0.0) for i in range(3)]
         so = [jnp.where(xl[i] < 0, -o[i], o[i]) for i in range(3)]  # signed offsets
         on2 = o[0] * o[0] + o[1] * o[1] + o[2] * o[2]
         out = on2 > 0
         on = jnp.where(out, jnp.sqrt(jnp.where(out, on2, 1.0)), 0.0)
-        c, k = coefs(on, on)
-        alpha = jnp.where(out, k * (so[0] * vl[0] + so[1] * vl[1] + so[2] * vl[2]), 0.0)
-        c = jnp.where(out, c, 0.0)  # inside: constant normal, clamped magnitude
-        tl = tuple(alpha * so[i] + jnp.where(u[i] > 0, c * vl[i], 0.0) for i in range(3))
+        A, B, irho = coefs(on, on)
+        edge = (act[0].astype(on.dtype) + act[1] + act[2]) > 1  # an edge or a corner: n turns
+        B = jnp.where(edge, B, 0.0)  # on a face n is constant (inside: also the magnitude)
+        alpha = jnp.where(out, (A - B) * ((so[0] * vl[0] + so[1] * vl[1] + so[2] * vl[2]) * irho) * irho, 0.0)
+        tl = tuple(alpha * so[i] + jnp.where(act[i], B * vl[i], 0.0) for i in range(3))
     elif kind == "cylinders":
         rho2 = xl[0] * xl[0] + xl[1] * xl[1]
         rpos = rho2 > 0
         rho = jnp.where(rpos, jnp.sqrt(jnp.where(rpos, rho2, 1.0)), 0.0)
-        irho = 1.0 / jnp.where(rpos, rho, 1.0)
-        e = (xl[0] * irho, xl[1] * irho)
+        irho_xy = 1.0 / jnp.where(rpos, rho, 1.0)
+        e = (xl[0] * irho_xy, xl[1] * irho_xy)
         rdot = e[0] * vl[0] + e[1] * vl[1]
-        de = ((vl[0] - rdot * e[0]) * irho, (vl[1] - rdot * e[1]) * irho)  # de_rho/dt
+        de = ((vl[0] - rdot * e[0]) * irho_xy, (vl[1] - rdot * e[1]) * irho_xy)  # de_rho/dt
         d1 = rho - dims[0]
         d2 = jnp.abs(xl[2]) - dims[1]
         o1, o2 = jnp.where(d1 > 0, d1, 0.0), jnp.where(d2 > 0, d2, 0.0)
@@ -577,13 +590,13 @@ def _slot_tangent(kind: str, R, p, dims, mask, X, V, a, D, form: str, clamp):
         on = jnp.where(out, jnp.sqrt(jnp.where(out, on2, 1.0)), 0.0)
         dmax = _select_max(d1, d2)
         sdf = jnp.where(out, on, jnp.where(dmax < 0, dmax, 0.0))
-        c, k = coefs(sdf, jnp.where(out, on, 1.0))  # inside: c = V'(clamp) (rho := 1)
-        alpha = jnp.where(out, k * (o1 * rdot + so2 * vl[2]), 0.0)
-        radial = jnp.where(out, o1, (d1 >= d2).astype(c.dtype))  # g_xy = c * radial * e_rho
-        cr = jnp.where(rpos, c * radial, 0.0)
-        w_e = jnp.where(rpos & out, alpha * o1 + jnp.where(d1 > 0, c * rdot, 0.0), 0.0)
-        tl = (w_e * e[0] + cr * de[0], w_e * e[1] + cr * de[1],
-              jnp.where(out, alpha * so2 + jnp.where(d2 > 0, c * vl[2], 0.0), 0.0))
+        A, B, irho = coefs(sdf, jnp.where(out, on, 1.0))  # inside: B = V'(clamp) (rho := 1)
+        radial = jnp.where(out, o1, (d1 >= d2).astype(on.dtype))  # g_xy = B * radial * e_rho
+        cr = jnp.where(rpos, B * radial, 0.0)  # the curvature of e_rho: B o_1 = V' n_e
+        Bt = jnp.where((d1 > 0) & (d2 > 0), B, 0.0)  # on the rim n turns in the (e_rho, z) plane
+        alpha = jnp.where(out, (A - Bt) * ((o1 * rdot + so2 * vl[2]) * irho) * irho, 0.0)
+        w_e = jnp.where(rpos & out, alpha * o1 + Bt * rdot, 0.0)
+        tl = (w_e * e[0] + cr * de[0], w_e * e[1] + cr * de[1], jnp.where(out, alpha * so2 + Bt * vl[2], 0.0))
     else:  # pragma: no cover
         raise ValueError(kind)
     return _from_slot(R, tl)
