@@ -24,6 +24,7 @@ from redman_jax._fields import (
     obstacle_potential_d2r,
     obstacle_potential_dr,
     obstacle_sdf_and_normals,
+    points_sdf_and_normals,
     total_gradient,
     total_gradient_batch,
     total_hessian,
@@ -316,6 +317,30 @@ def test_normal_on_the_surface_is_the_unit_face_normal(kind, dims, x, normal):
     np.testing.assert_allclose(np.asarray(n2[0, k]), normal, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind, dims, x", [
+    ("boxes", (0.1, 0.1, 0.1), (0.1, 0.1, 0.05)),  # on an edge
+    ("boxes", (0.1, 0.1, 0.1), (0.1, -0.1, 0.1)),  # on a corner
+    ("boxes", (0.1, 0.1, 0.1), (0.02, 0.02, 0.0)),  # inside, equidistant from two faces
+    ("cylinders", (0.1, 0.1, 0.0), (0.1, 0.0, 0.1)),  # on the rim
+])
+def test_normal_at_a_tie_is_unit_and_the_analytic_one(kind, dims, x):
+    """Where two faces are equally near (edges, corners, rims, interior medial points) ``jnp.max``
+    shared its derivative among them: the autodiff normal was 0.71 (0.58) long, and ``jax.grad``
+    of the field potential that much short of the analytic gradient. Now one face takes it, the
+    one the structure-of-arrays normals pick, and the two field gradients agree."""
+    from redman_jax._fields import points_sdf_and_normals
+
+    obs = make_obstacles(**{kind: [(np.eye(3), np.zeros(3), np.asarray(dims)[:3 if kind == "boxes" else 2])]})
+    xx = jnp.asarray(x)
+    _, n = obstacle_sdf_and_normals(obs, xx)
+    _, n2 = points_sdf_and_normals(obs, xx[None])
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(n[0])), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(n[0]), np.asarray(n2[0, 0]), atol=1e-12)
+    g_ad = jax.grad(lambda y: obstacle_field_potential(obs, y, 0.05, 0.75))(xx)
+    g = obstacle_field_gradient(obs, xx, 0.05, 0.75)
+    np.testing.assert_allclose(np.asarray(g_ad), np.asarray(g), rtol=1e-9)
+
+
 @pytest.mark.parametrize("kind", ["spheres", "boxes", "cylinders"])
 def test_clamp_inside_obstacle_gives_finite_outward_force(kind):
     R = _rot(4)
@@ -378,8 +403,11 @@ def _empty():
     return make_obstacles(capacities=(2, 3, 2))  # same structure as _scene(): no recompilation
 
 
-def test_goal_only_field_is_exact_quadratic():
-    obs = _empty()
+@pytest.mark.parametrize("slots", ["masked", "none"])
+def test_goal_only_field_is_exact_quadratic(slots):
+    """Only the goal's quadratic: every slot masked, or a set without any slot (``make_obstacles()``,
+    whose gradient, Hessian and guidance raised "need at least one array to concatenate")."""
+    obs = _empty() if slots == "masked" else make_obstacles()
     goal = jnp.array([0.2, -0.1, 0.5])
     xs = jnp.array([[0.7, 0.3, 0.2], [-0.4, 0.1, 1.3]])
     vp, vm = jnp.zeros((3, 3)), jnp.zeros(3, bool)
@@ -392,6 +420,11 @@ def test_goal_only_field_is_exact_quadratic():
     # a Newton step (3.24) lands exactly on the goal
     xmin = xs - jnp.linalg.solve(H, g[..., None])[..., 0]
     np.testing.assert_allclose(xmin, np.broadcast_to(goal, xs.shape), atol=1e-15)
+    v = jax.vmap(guidance_velocity, in_axes=(0, None, None, None, None, None))(xs, goal, obs, vp, vm, p)
+    assert np.all(np.isfinite(np.asarray(v)))
+    d, n = points_sdf_and_normals(obs, xs)
+    K = sum(obs.capacities)
+    assert d.shape == (2, K) and n.shape == (2, K, 3)
 
 
 _vg_v = jax.jit(jax.vmap(virtual_gradient, in_axes=(0, None, None, None, None)))

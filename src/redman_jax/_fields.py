@@ -262,6 +262,8 @@ def points_sdf_and_normals(obs: ObstacleSet, points: Float[Array, "m 3"]):
         m = fam.mask[None, :]
         ds.append(jnp.where(m, sdf, BIG_DISTANCE))
         ns.append(jnp.stack([jnp.where(m, v, 0.0) for v in n], axis=-1))
+    if not ds:  # a set without any slot: no columns
+        return jnp.zeros((points.shape[0], 0), points.dtype), jnp.zeros((points.shape[0], 0, 3), points.dtype)
     return jnp.concatenate(ds, axis=1), jnp.concatenate(ns, axis=1)
 
 

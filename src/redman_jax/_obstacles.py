@@ -362,18 +362,30 @@ def _min0(m):
     return jnp.where(m <= 0.0, m, 0.0)
 
 
+def _first_max(v):
+    """``max(v)`` over a short static vector as a chain of selects, so that its derivative goes
+    whole to the first largest entry: ``jnp.max`` shares it among tied entries, which gave
+    normals of length 0.71 on a box's edges (0.58 at corners, at an interior medial point and on a
+    cylinder's rim) and scaled the autodiff field gradient by as much. The tie-break is the
+    analytic passes' (``_fields._family_sdf_normals_planes``: the lower index first)."""
+    m = v[-1]
+    for i in range(v.shape[0] - 2, -1, -1):
+        m = jnp.where(v[i] >= m, v[i], m)
+    return m
+
+
 def sphere_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     return safe_norm(x_local) - dims[0]
 
 
 def box_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     u = jnp.abs(x_local) - dims
-    return _vmax0_norm(u) + _min0(jnp.max(u))
+    return _vmax0_norm(u) + _min0(_first_max(u))
 
 
 def cylinder_sdf(x_local: Float[Array, "3"], dims: Float[Array, "3"]) -> Float[Array, ""]:
     d = jnp.stack([safe_norm(x_local[:2]) - dims[0], jnp.abs(x_local[2]) - dims[1]])
-    return _vmax0_norm(d) + _min0(jnp.max(d))
+    return _vmax0_norm(d) + _min0(_first_max(d))
 
 
 def _family_sdf(s: Shapes, x: Float[Array, "3"], fn) -> Float[Array, " K"]:
