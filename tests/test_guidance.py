@@ -120,6 +120,16 @@ def test_perfect_controller_batch_equals_singles():
         # so compare the approach before the trap tightly and the outcome exactly.
         np.testing.assert_allclose(batch.x[i, :10], single.x[:10], rtol=0, atol=1e-9)
         assert bool(batch.success[i]) == bool(single.success)
+    # a float32 start with a float64 goal is promoted, as perfect_controller does (it failed in
+    # the estimator's buffer update), and integer points run in the default float type (they
+    # failed in jacfwd); both give the float64 batch's results
+    x32 = x0.astype(jnp.float32)
+    mixed, ref = (perfect_controller_batch(x, xg, obs, pp) for x in (x32, x32.astype(jnp.float64)))
+    assert mixed.x.dtype == jnp.float64
+    np.testing.assert_array_equal(np.asarray(mixed.x), np.asarray(ref.x))
+    ints = perfect_controller_batch(np.ones((2, 3), int), np.array([[1, 0, 0], [0, 1, 1]]), obs, pp)
+    floats = perfect_controller_batch(np.ones((2, 3)), np.array([[1.0, 0, 0], [0, 1, 1]]), obs, pp)
+    np.testing.assert_array_equal(np.asarray(ints.x), np.asarray(floats.x))
 
 
 def test_perfect_controller_reports_failed_solves_and_collisions():

@@ -311,6 +311,9 @@ def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams
     obstacle sets (one ``jit(vmap)``). **Raises** ``ValueError`` for wrongly shaped or (where
     concrete) non-finite points."""
     x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
+    dtype = jnp.result_type(x0, goal_p)  # one float type: mixed precisions promoted, integers
+    dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)  # the default
+    x0, goal_p = x0.astype(dtype), goal_p.astype(dtype)
     if x0.ndim != 2 or x0.shape[1] != 3:
         raise ValueError(f"x0: expected shape (S, 3), got {tuple(x0.shape)}")
     _check_points(x0, goal_p, tuple(x0.shape))
