@@ -14,6 +14,9 @@ class CLIError(ValueError):
     pass
 
 
+_MAX_RANGE = 1_000_000
+
+
 def parse_int_list(text: str, name: str) -> tuple[int, ...]:
     """Parse ``"1-20"``, ``"1,3,5"`` or ``"1-5,9"`` into a tuple of ints (``name`` for messages)."""
     out: list[int] = []
@@ -27,6 +30,8 @@ def parse_int_list(text: str, name: str) -> tuple[int, ...]:
                 a, b = int(a), int(b)
                 if b < a:
                     raise CLIError(f"--{name}: empty range {part!r}")
+                if b - a >= _MAX_RANGE:  # a typo such as 1-20000000000 would fill the memory
+                    raise CLIError(f"--{name}: range {part!r} holds more than {_MAX_RANGE:,} values")
                 out.extend(range(a, b + 1))
             else:
                 out.append(int(part))

@@ -130,9 +130,16 @@ def make_gains(controller, overrides: dict | None):
             fields = [f for f in getattr(gains, "__dataclass_fields__", {})]
             raise ValueError(f"gains: {type(gains).__name__} has no field {name!r} (fields: {fields})")
         old = getattr(gains, name)
-        new = jnp.asarray(value, dtype=jnp.asarray(old).dtype)
+        where = f"gains: {type(gains).__name__}.{name}"
+        try:
+            new = jnp.asarray(value, dtype=jnp.asarray(old).dtype)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: expected a number (or an array of shape {jnp.shape(old)}), "
+                             f"got {value!r}") from None
         if new.shape != jnp.shape(old):
-            raise ValueError(f"gains.{name}: expected shape {jnp.shape(old)}, got {new.shape}")
+            raise ValueError(f"{where}: expected shape {jnp.shape(old)}, got {new.shape}")
+        if not np.all(np.isfinite(np.asarray(new))):  # every run with it would be NaN
+            raise ValueError(f"{where}: expected finite values, got {value!r}")
         gains = eqx.tree_at(lambda g: getattr(g, name), gains, new)
     return gains
 

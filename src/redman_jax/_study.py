@@ -53,6 +53,8 @@ from ._progress import Progress
 from ._scenario import CASES
 from ._store import UnitStore, atomic_write_bytes, atomic_write_text, config_hash
 
+SEED_MAX = 2**31 - 1  # a seed and its retries seed + 1000 k become JAX PRNG keys (int32 without x64)
+
 __all__ = ["SweepConfig", "run_sweep", "load_runs", "RUN_COLUMNS", "GRADIENT_CASES", "arm_from_spec"]
 
 GRADIENT_CASES = ("agriculture", "warehouse", "simple")
@@ -157,6 +159,18 @@ class SweepConfig:
                 raise ValueError(f"controllers: unknown controller {c!r}; choose from {sorted(CONTROLLERS)}")
         if not self.seeds or any(int(s) < 0 for s in self.seeds):
             raise ValueError(f"seeds: need non-negative integers, got {self.seeds}")
+        if self.max_retries < 0:
+            raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
+        top = SEED_MAX - 1000 * self.max_retries  # the retries are seed + 1000 k, k <= max_retries
+        if max(int(s) for s in self.seeds) > top:
+            raise ValueError(f"seeds: at most {top} with max_retries={self.max_retries} (the retries "
+                             f"seed + 1000 k must stay below 2**31), got {max(int(s) for s in self.seeds)}")
+        idle = [c for c in self.cases if not self.controllers_for(c)]
+        if idle:  # its scenarios would be built for nothing
+            raise ValueError(f"cases: {', '.join(idle)} runs none of the controllers {', '.join(self.controllers)} "
+                             f"(gradient runs on {', '.join(self.gradient_cases)} only); drop it or add a controller")
+        if Path(self.out).exists() and not Path(self.out).is_dir():
+            raise ValueError(f"out: {str(self.out)!r} is a file, not a folder")
         if not (0 < self.ts <= 0.1):
             raise ValueError(f"ts: sample time must be in (0, 0.1] s, got {self.ts}")
         if not isinstance(self.jobs, int) or self.jobs < 1:
@@ -168,8 +182,6 @@ class SweepConfig:
 
         if self.solver not in SOLVER_CHOICES:
             raise ValueError(f"solver: unknown solver {self.solver!r}; choose from {list(SOLVER_CHOICES)}")
-        if self.max_retries < 0:
-            raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
         labels = {}
         for a in self.arms:
             _check_arm_spec(a)
@@ -240,10 +252,18 @@ def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
     return pipe.study_shapes(cases, cfg.ts)[case]
 
 
+# SPEC section 9: a gradient-guided run ends 6 s after its start or after 1 s held at the goal
+GUIDANCE_HORIZON_S, GUIDANCE_HOLD_S = 6.0, 1.0
+
+
 def _sim_params(cfg: SweepConfig):
+    """The simulator's options of a sweep: its solver, and the gradient-guided horizon and hold
+    in samples of ``cfg.ts`` (``SimParams`` counts samples: at ``--ts 0.02`` its 600 and 100
+    would be 12 s and 2 s)."""
     from ._sim import SimParams
 
-    return SimParams(solver=cfg.solver)
+    return SimParams(solver=cfg.solver, guidance_samples=max(1, round(GUIDANCE_HORIZON_S / cfg.ts)),
+                     hold_samples=max(1, round(GUIDANCE_HOLD_S / cfg.ts)))
 
 
 def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
@@ -255,10 +275,16 @@ def _run_key(cfg: SweepConfig, arm: str, case: str, ctrl: str) -> str:
     from ._sim import solver_name
 
     gains = (cfg.gains or {}).get(ctrl)
-    solver = solver_name(_sim_params(cfg), CONTROLLERS[ctrl]())
+    params = _sim_params(cfg)
+    controller = CONTROLLERS[ctrl]()
+    solver = solver_name(params, controller)
     N, caps = _sim_shapes(cfg, case, ctrl)
-    return config_hash({"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains,
-                        "solver": solver, "shapes": [int(N), [int(c) for c in caps]], "v": 1})
+    key = {"scen": _scenario_key(cfg, arm, case), "ctrl": ctrl, "gains": gains,
+           "solver": solver, "shapes": [int(N), [int(c) for c in caps]], "v": 1}
+    horizon = [params.guidance_samples, params.hold_samples]
+    if controller.uses_guidance and horizon != [600, 100]:  # other sample times (the default's keys kept)
+        key["guidance_samples"] = horizon
+    return config_hash(key)
 
 
 def _jobs(value) -> int:
