@@ -328,6 +328,32 @@ def test_missing_traces_and_columns_do_not_crash(tmp_path):
     assert set(RUN_COLUMNS) <= set(load_runs(sub)[0])
 
 
+def test_damaged_traces_read_as_missing_with_a_warning(tmp_path):
+    """A truncated or empty traces file (a full disk, a copy cut short) raised ``BadZipFile`` or
+    ``EOFError`` while the report's data were read, so ``plot`` stopped with a traceback; it is
+    a missing file now, named in a warning."""
+    synthetic_study(tmp_path)
+    files = sorted((tmp_path / "traces").glob("*.npz"))
+    cut, empty = files[0], files[1]
+    cut.write_bytes(cut.read_bytes()[:300])
+    empty.write_bytes(b"")
+    with pytest.warns(UserWarning, match="unreadable traces") as seen:
+        d = load_study(tmp_path)
+        for path in (cut, empty):
+            assert d.traces(*_trace_key(path, d)) is None
+    assert {p.name for p in (cut, empty)} <= {f.name for f in (tmp_path / "traces").iterdir()}
+    assert any(cut.name in str(w.message) for w in seen) and any(empty.name in str(w.message) for w in seen)
+    with pytest.warns(UserWarning, match="unreadable traces"):
+        make_report(tmp_path, hooks=False)  # no traceback
+
+
+def _trace_key(path, d):
+    for arm, case, ctrl in {(r["arm"], r["case"], r["controller"]) for r in d.rows}:
+        if path.name == f"{arm}_{case}_{ctrl}.npz":
+            return arm, case, ctrl
+    raise AssertionError(path)
+
+
 def test_unvalidated_scenarios_are_left_out(tmp_path):
     rows = synthetic_study(tmp_path, js_failures={("9dof", "welding", 1)})
     for r in rows:

@@ -37,6 +37,7 @@ import json
 import math
 import platform
 import re
+import warnings
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -245,7 +246,9 @@ class StudyData:
                     try:
                         with np.load(path, allow_pickle=False) as z:
                             data = {k: np.asarray(z[k]) for k in z.files}
-                    except (OSError, ValueError):
+                    except Exception as e:  # noqa: BLE001 -- damaged: BadZipFile, EOFError, zlib.error, ...
+                        warnings.warn(f"{path}: unreadable traces ({type(e).__name__}: {e}); the figures "
+                                      f"that need them are not generated", stacklevel=2)
                         data = None
             self._traces[key] = data
         return self._traces[key]

@@ -453,8 +453,6 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     out = Path(cfg.out)
     store = UnitStore(out)
     leader = _leader(cfg)
-    if leader:
-        atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
     phases = _units(cfg)
     progress = Progress(sum(len(g) for ph in phases for g in ph.values()), "units",
                         enabled=cfg.progress and leader)
@@ -483,8 +481,12 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
 
 
 def _write_results(cfg: SweepConfig, out: Path, store: UnitStore) -> None:
+    """The table, then the configuration that made it (written together at the end: a sweep
+    interrupted in a folder of an earlier one leaves that one's table and configuration, which
+    ``plot`` reads as a pair), the timing, and the figures and report."""
     rows = collect_rows(cfg, store)
     write_table(out, rows)
+    atomic_write_text(out / "config.json", json.dumps(cfg.to_json(), indent=2, default=str))
     timing = write_timing(cfg, store)
     if cfg.progress:
         print(timing_summary(timing), flush=True)
