@@ -61,3 +61,21 @@ def report_probe(out):
     if (out / "fail").exists():
         raise RuntimeError("the report failed")
     (out / "probe.txt").write_text(f"{os.getpid()}\n{os.environ.get('XLA_FLAGS', '')}")
+
+
+def install_slow():
+    """Worker initializer: units that record this worker's pid in ``$REDMAN_TEST_PID_DIR`` and
+    then hang (the test kills the sweep's main process meanwhile)."""
+    import os
+    import time
+
+    import redman_jax._pipeline as pipe
+
+    def hang(*args, **kwargs):
+        with open(os.path.join(os.environ["REDMAN_TEST_PID_DIR"], f"{os.getpid()}.pid"), "w") as f:
+            f.write(str(os.getppid()))
+        time.sleep(120)
+        raise RuntimeError("not killed")
+
+    pipe.build_case = hang
+    pipe.run_controller = hang

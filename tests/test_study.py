@@ -45,6 +45,7 @@ def test_parse_int_list():
         (["sweep", "--arms", "urdf:/nonexistent/robot.urdf:tool0"], "not found"),
         (["sweep", "--arms", ","], "arms: empty"),
         (["--seeds", "x"], "redman-jax study: error: --seeds"),
+        (["--seeds", "1-20000000000"], "--seeds: range '1-20000000000' holds more than 1,000,000 values"),
         (["demo", "--arm", "seven"], "demo: error: --arm: 'seven'"),  # its own option, not --arms
         (["demo", "--arm", "urdf:robot.urdf"], "demo: error: --arm: URDF arms are given as"),  # no subcommand: the study's options
     ],
@@ -68,9 +69,21 @@ def test_sweep_configuration_is_checked_before_any_work(tmp_path):
                         ({"cases": ("simple", "simple")}, "cases: repeated"),
                         ({"gains": [1, 2]}, "gains: expected"),
                         ({"gains": {"velocity": {"nope": 1.0}}}, "no field 'nope'"),
-                        ({"gains": {"velocity": {"kp": [1.0, 2.0]}}}, "gains.kp: expected shape")]:
+                        ({"gains": {"velocity": {"kp": [1.0, 2.0]}}}, "VelocityGains.kp: expected shape"),
+                        # a value that is no number, or not finite (every run of it diverged)
+                        ({"gains": {"velocity": {"kp": "abc"}}}, "VelocityGains.kp: expected a number"),
+                        ({"gains": {"velocity": {"kp": None}}}, "VelocityGains.kp: expected a number"),
+                        ({"gains": {"velocity": {"kp": float("nan")}}}, "VelocityGains.kp: expected finite"),
+                        # a case none of the controllers runs on: its scenarios built for nothing
+                        ({"cases": ("welding", "simple"), "controllers": ("gradient",)},
+                         "cases: welding runs none of the controllers gradient"),
+                        # seeds whose retries leave int32 (JAX PRNG keys without x64)
+                        ({"seeds": (2**31 - 1000,)}, "seeds: at most"),
+                        ({"out": str(tmp_path / "a-file")}, "is a file, not a folder")]:
+        (tmp_path / "a-file").write_text("")
         with pytest.raises(ValueError, match=message):
-            SweepConfig(out=str(tmp_path), **kw)
+            SweepConfig(out=str(tmp_path), **kw) if "out" not in kw else SweepConfig(**kw)
+    assert SweepConfig(out=str(tmp_path), seeds=(2**31 - 1 - 20_000,)).seeds  # the largest with 20 retries
 
 
 def test_urdf_arms_are_keyed_by_their_file_and_never_share_unit_files(tmp_path):
@@ -90,6 +103,16 @@ def test_urdf_arms_are_keyed_by_their_file_and_never_share_unit_files(tmp_path):
     (tmp_path / "a" / "robot.urdf").write_text("<robot name='a2'/>")
     after = _scenario_key(cfg, a, "simple"), _run_key(cfg, a, "simple", "velocity")
     assert before[0] != after[0] and before[1] != after[1]
+
+
+def test_guided_horizon_and_hold_are_six_and_one_seconds_at_any_sample_time():
+    """SPEC section 9: a gradient-guided run ends after 6 s or 1 s held at the goal. The sweep
+    passed ``SimParams``' sample counts (600, 100) whatever ``--ts``: 12 s and 2 s at 0.02."""
+    from redman_jax._study import _sim_params
+
+    for ts in (0.01, 0.02, 0.005, 0.004):
+        p = _sim_params(SweepConfig(ts=ts))
+        assert p.guidance_samples * ts == pytest.approx(6.0) and p.hold_samples * ts == pytest.approx(1.0)
 
 
 def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
@@ -389,9 +412,10 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
             # and jax started on that one core: XLA's CPU thread pool is one thread wide (started
             # with two cores, it is two threads wide, and both then share the one core)
             assert pools == [1] * len(seen), pools
-        else:  # fewer cores than workers: nothing pinned
+        else:  # a platform that cannot pin: nothing pinned
             assert all(t == allowed for w in seen for t in w)
-        assert _worker_cores(1) == [] and _worker_cores(len(os.sched_getaffinity(0)) + 1) == []
+        cores = sorted(os.sched_getaffinity(0))  # every worker on one core, a lone one too
+        assert _worker_cores(1) == cores[:1] and _worker_cores(len(cores) + 1) == cores + cores[:1]
     names = sorted(p.name for p in (tmp_path / "parallel").iterdir())
     assert sorted(p.name for p in (tmp_path / "serial").iterdir()) == names
     calls.clear()
@@ -399,6 +423,71 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     assert calls == []
     with pytest.raises(ValueError, match="jobs"):
         SweepConfig(jobs=0)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux's /proc")
+def test_workers_leave_when_the_sweep_is_killed(tmp_path):
+    """A sweep's main process killed alone (``kill -9``, as the OOM killer or a scheduler does)
+    left its two workers computing and then idling for ever, beside the queues' manager; every
+    process it started now leaves with it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    tests_dir = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, REDMAN_TEST_PID_DIR=str(pids),
+               PYTHONPATH=tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    script = ("import _fake_units; from redman_jax._study import SweepConfig, run_sweep; "
+              f"run_sweep(SweepConfig(out={str(tmp_path / 'o')!r}, arms=('7',), cases=('welding', 'simple'), "
+              "seeds=(1,), controllers=('velocity',), figures=False, progress=False, jobs=2), "
+              "_worker_init=_fake_units.install_slow)")
+    main = subprocess.Popen([sys.executable, "-c", script], env=env)
+
+    def children(pid):
+        out = []
+        for d in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            if d.isdigit() and int(fields[1]) == pid:
+                out.append(int(d))
+        return out
+
+    try:
+        deadline = time.monotonic() + 180
+        while len(list(pids.glob("*.pid"))) < 2:  # both workers inside a unit
+            assert main.poll() is None and time.monotonic() < deadline, "the workers did not start"
+            time.sleep(0.2)
+        started = children(main.pid)
+        workers = [int(p.stem) for p in pids.glob("*.pid")]
+        assert set(workers) <= set(started) and len(started) >= 3  # two workers and the manager
+        main.send_signal(signal.SIGKILL)
+        main.wait()
+        deadline = time.monotonic() + 30
+        alive = started
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.2)
+            alive = [p for p in started if os.path.exists(f"/proc/{p}") and _not_zombie(p)]
+        assert not alive, f"still running after the sweep was killed: {alive}"
+    finally:
+        if main.poll() is None:
+            main.kill()
+        for pid in locals().get("started", []):  # never leave them behind, even when failing
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _not_zombie(pid) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def test_xdist_workers_run_on_a_core_of_their_own():
@@ -557,3 +646,32 @@ def test_demo_writes_its_figures_and_a_strict_json_summary(tmp_path):
     assert back == summary
     assert back["controller"] == "joint_space" and back["t_lme_per_sample"] is None
     assert back["n_samples"] > 0 and np.isfinite(back["mean_pos_error"])
+
+
+@pytest.mark.slow
+def test_the_table_does_not_depend_on_jobs_or_on_a_resume(tmp_path):
+    """Real units (7-DOF simple case, one seed, joint space and velocity OSC; about 40 s per sweep
+    on 2 cores): ``--jobs 1`` (units in the command's own process), ``--jobs 2`` (in workers),
+    and a ``--jobs 2`` sweep resumed with one group left give the same table, value for value.
+    Before, the last phase's single group ran in the main process under XLA's default flags, and
+    a process with both cores split its batches in two: 10 and 17 values differed to rounding."""
+    import csv
+    import shutil
+
+    def sweep(out, jobs):
+        cmd = [sys.executable, "-m", "redman_jax", "sweep", "--arms", "7", "--cases", "simple", "--seeds", "1",
+               "--controllers", "joint_space,velocity", "--no-figures", "--quiet", "--jobs", str(jobs),
+               "--out", str(out)]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stderr[-3000:]
+        with open(out / "runs.csv") as f:
+            return [{k: v for k, v in r.items() if not k.startswith("t_") and k != "sim_wall_s"}
+                    for r in csv.DictReader(f)]
+
+    one, two = sweep(tmp_path / "one", 1), sweep(tmp_path / "two", 2)
+    assert len(one) == 2 and one == two
+    units = tmp_path / "two" / "units"
+    (victim,) = [p for p in units.iterdir() if p.name.startswith("run_7dof_simple_velocity")]
+    victim.unlink()  # as if killed before its last unit: one group left
+    shutil.rmtree(tmp_path / "two" / "traces")
+    assert sweep(tmp_path / "two", 2) == one

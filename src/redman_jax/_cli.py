@@ -77,7 +77,9 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
     p.add_argument("--jobs", default="auto",
                    help="worker processes for the groups of units: scenario builds per (arm, case), "
                         "simulations per (arm, controller) (default auto: 2 on a CPU machine "
-                        "with 2 or more cores, 1 with an accelerator)")
+                        "with 2 or more cores, 1 with an accelerator); each worker on one core, and "
+                        "--jobs 1 computes in this process on one core, so the table is the same "
+                        "for any count")
     p.add_argument("--no-figures", action="store_true", help="skip figures and report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--distributed", action="store_true",
@@ -150,8 +152,13 @@ def main(argv=None) -> int:
     command = args.command
     try:
         if command in ("study", "sweep"):
-            from ._study import SweepConfig, run_sweep
+            from ._study import SweepConfig, adopt_worker_xla_flags, compute_here_as_a_worker, run_sweep
 
+            # before any JAX work, so that the table is the same for any --jobs: the workers' XLA
+            # flags, and for --jobs 1 (units computed here) a worker's one core
+            adopt_worker_xla_flags()
+            if str(args.jobs).strip() == "1" and not args.distributed:
+                compute_here_as_a_worker()
             _join_distributed(args)
             cfg = SweepConfig.from_args(args, study=(command == "study"))
             run_sweep(cfg)

@@ -243,7 +243,10 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     scen_p, ik_p = shard_batch(scen_p), shard_batch(ik_p)
     ik_arg = ik_p if controller.needs_joint_reference else None
     t0 = time.perf_counter()
-    res = _block(simulate_batch(arm, scen_p, controller, gains, ik=ik_arg, params=params))
+    # one chunk whatever the cores this process may use: simulate_batch's default splits the batch
+    # over them (2 x 10 on 2 free cores, 1 x 20 in a pinned worker), and the batch size changes
+    # the rounding, so a unit would depend on where it ran (--jobs 1 against 2, a resumed sweep)
+    res = _block(simulate_batch(arm, scen_p, controller, gains, ik=ik_arg, params=params, threads=1))
     t_sim = time.perf_counter() - t0
     res = jax.tree.map(lambda x: x[:R], to_host(res))  # gathered from every process's devices
     if not controller.uses_guidance:  # the padded samples back off (invalid, never reported)

@@ -19,8 +19,12 @@ group per arm and case), then the simulations (one group per arm and controller,
 process so that they share the compilation). XLA compiles on one thread, so on a CPU machine two
 workers keep two cores busy through the compile-heavy parts; each worker is pinned to a core of its
 own (two unpinned XLA processes contend for both cores: 1.3-1.7x slower, see :func:`_worker_start`).
-The results are the same as with one process (each unit is a deterministic function of its
-configuration; tested).
+The results are the same as with one process, value for value: each unit is a deterministic
+function of its configuration, computed under the workers' XLA flags (the command line gives its
+own process those too, :func:`adopt_worker_xla_flags`), with its batch in one chunk whatever the
+cores (``simulate_batch(threads=1)``), and a phase with one group left still runs in a worker.
+Tested on real units (slow) and on stand-ins. (A Python caller whose process started JAX before
+``run_sweep`` computes ``jobs=1`` units under its own flags, which round differently.)
 
 ``distributed`` (``--distributed``): several processes, one per node, run the same sweep
 through ``jax.distributed`` (:mod:`redman_jax._distributed`). Each simulation's batch is sharded
@@ -466,7 +470,7 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
                 todo[gk] = missing
         if cfg.distributed:  # every process runs process 0's list of missing units, in its order
             todo = broadcast_object(todo)
-        if cfg.jobs > 1 and len(todo) > 1:
+        if cfg.jobs > 1 and todo:  # even one group: in-process units would round otherwise
             _run_parallel(cfg, todo, progress, _worker_init)
         else:
             for units in todo.values():
@@ -522,15 +526,20 @@ def render_report(out, make=None) -> None:
 
 
 def _worker_cores(jobs: int) -> list[int]:
-    """The CPU cores to pin ``jobs`` workers to, one each: the cores this process may run on, if
-    there are at least ``jobs`` of them and the platform can pin (Linux); else none (no pinning)."""
+    """The CPU cores to pin ``jobs`` workers to, one each: the cores this process may run on, in
+    turn (more workers than cores share them); none where the platform cannot pin (not Linux).
+
+    Every worker is pinned, a lone one too (the last group of a resumed sweep): its XLA thread
+    pool is then one thread wide, and a pool two threads wide rounds some results differently
+    (7-DOF simple case, velocity OSC: 5 values of a row in the last digits), so a unit would depend
+    on how many workers the sweep ran."""
     import os
 
     try:
         cores = sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         return []
-    return cores[:jobs] if jobs > 1 and len(cores) >= jobs else []
+    return [cores[i % len(cores)] for i in range(jobs)] if cores else []
 
 
 def _pin_threads(core: int) -> bool:
@@ -576,12 +585,14 @@ def _worker_start(cores, init) -> None:
     workers contend for both cores. Measured (2-core CPU, two processes at once, each pinned with
     ``taskset``: the 8-DOF warehouse velocity and acceleration simulations of 20 seeds, repeated in
     both orders): warm 37.7 and 35.3 s unpinned against 25.0 and 27.7 s pinned, cold (compilation
-    included) 80-86 s against 46-50 s. Alone, unpinned is faster (19.7 against 25.0 s), so a single
-    process is never pinned. ``taskset`` pins before jax is imported, so the pool is one thread
+    included) 80-86 s against 46-50 s. Alone, unpinned was faster (19.7 against 25.0 s), but a lone
+    worker is pinned too, for results that do not depend on the number of workers
+    (:func:`_worker_cores`). ``taskset`` pins before jax is imported, so the pool is one thread
     wide; a worker imports jax before this initializer runs, so :func:`_run_parallel` spawns the
     workers from a thread pinned to one core (:func:`_one_core_while_spawning`) to get that."""
     import queue as queue_mod
 
+    _exit_with_parent()
     if cores is not None:
         try:
             _pin_threads(cores.get_nowait())
@@ -589,6 +600,26 @@ def _worker_start(cores, init) -> None:
             pass
     if init is not None:
         init()
+
+
+def _exit_with_parent() -> None:
+    """In a process ``multiprocessing`` started (a worker, the queues' manager): leave as soon as
+    the parent is gone. A sweep's main process killed alone (``kill -9``, the OOM killer, a
+    scheduler) otherwise left its workers computing their groups and then idling for ever, with
+    the manager beside them (about 450 MB each)."""
+    import multiprocessing as mp
+    import os
+    import threading
+
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch():
+        parent.join()  # returns when the parent's end of the pipe closes: it exited or was killed
+        os._exit(1)
+
+    threading.Thread(target=watch, name="redman-jax-exit-with-parent", daemon=True).start()
 
 
 @contextlib.contextmanager
@@ -667,6 +698,47 @@ def _xla_accepts(flags: str) -> bool:
     return done.returncode == 0
 
 
+def adopt_worker_xla_flags(extra=WORKER_XLA_FLAGS) -> bool:
+    """Give this process the workers' XLA flags, if its XLA backend has not started yet (the
+    command line calls this first): the units it computes itself (``--jobs 1``, a distributed
+    sweep) then round as the workers' do, so a table does not depend on ``--jobs`` or on how a
+    resumed sweep split its work. Returns whether ``XLA_FLAGS`` changed (not where the backend
+    runs already, or this jaxlib refuses the flags)."""
+    import os
+
+    try:
+        from jax._src import xla_bridge
+
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = True
+    before = os.environ.get("XLA_FLAGS", "")
+    flags = _with_flags(before, extra)
+    if started or flags == before or not _xla_accepts(flags):
+        return False
+    os.environ["XLA_FLAGS"] = flags
+    return True
+
+
+def compute_here_as_a_worker() -> bool:
+    """Pin this process to one core if its XLA backend has not started yet (the command line
+    calls this for ``--jobs 1``): XLA sizes its CPU thread pool by the cores a process may use
+    when the backend starts, and the units then round as a worker's do (:func:`_worker_cores`).
+    Returns whether it pinned (not where the backend runs already or the platform cannot pin)."""
+    import os
+
+    try:
+        from jax._src import xla_bridge
+
+        if xla_bridge.backends_are_initialized():
+            return False
+        cores = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, cores[:1])
+    except (ImportError, AttributeError, OSError):
+        return False
+    return True
+
+
 @contextlib.contextmanager
 def _worker_xla_flags(extra=WORKER_XLA_FLAGS):
     """Run the body with ``XLA_FLAGS`` extended by ``extra`` in this process's environment, which
@@ -698,17 +770,22 @@ def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -
 
     order = sorted(todo, key=lambda k: -_weight(k))
     worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
+    jobs = min(cfg.jobs, len(todo))
+    from multiprocessing.managers import SyncManager
+
     ctx = mp.get_context("spawn")
-    with ctx.Manager() as manager:
+    manager = SyncManager(ctx=ctx)
+    manager.start(initializer=_exit_with_parent)
+    with manager:
         cores = None
-        pins = _worker_cores(cfg.jobs)
+        pins = _worker_cores(jobs)
         if pins:
             cores = manager.Queue()
             for c in pins:
                 cores.put(c)
         start = functools.partial(_worker_start, cores, init)
         with (_one_core_while_spawning(pins[0] if pins else None), _worker_xla_flags(),
-              ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool):
+              ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=start) as pool):
             q = manager.Queue()
             pending = {pool.submit(_run_group, worker_cfg, todo[k], q.put) for k in order}
 
