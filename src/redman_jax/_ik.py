@@ -70,7 +70,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
 from ._math import as_float, check_initial_state, check_positive
-from ._math import clip_norm, quat_error, rot_to_quat
+from ._math import cast_floating, clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
 from ._obstacles import ObstacleSet, obstacle_distances
@@ -435,6 +435,7 @@ def _check_reference(arm: Arm, ref: Reference, q0):
 
 def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams) -> IKResult:
     dtype = jnp.result_type(ref.p.dtype, arm.q0.dtype)
+    params = cast_floating(params, dtype)  # float64 defaults would promote a float32 scan's carry
     N = ref.p.shape[0]
     n_s = jnp.clip(ref.n_samples, 1, N)
     k = jnp.arange(N)
