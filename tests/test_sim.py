@@ -315,6 +315,30 @@ def with_nan_reference(scs, i):
     return stack_scenarios(bad)
 
 
+def test_a_nan_member_leaves_the_batchs_gradient_finite():
+    """Reverse mode through a batch with shared gains: a member poisoned by a NaN reference is
+    gated off in the vector field, but its zero cotangent met the control law's NaN partials
+    (0 * NaN = NaN) and the gains' gradient, summed over the batch, was NaN for every member. The
+    closed loop now reads a NaN state or reference as 0 (the member stays flagged), so the batch's
+    gradient of a loss of the healthy members is the clean batch's."""
+    sc, jref = joint_motion_scenario(ARM, DQ_FREE, 0.1, 15)
+    batch = stack_scenarios([sc, sc])
+    J = jax.tree.map(lambda x: jnp.stack([x, x]), jref)
+    bad = eqx.tree_at(lambda s: s.reference.p, batch, batch.reference.p.at[1, 5, 0].set(jnp.nan))
+
+    @jax.jit
+    def loss(kp, scen):
+        r = simulate_batch(ARM, scen, CTRL, toy_gains("osc", kp=jnp.stack([kp, 1000.0, 10.0])), ik=J)
+        return jnp.sum(jnp.where(r.diverged, 0.0, jnp.sum(r.q[:, -1] ** 2, axis=-1))), r.diverged
+
+    (v0, d0), g0 = jax.value_and_grad(loss, has_aux=True)(250.0, batch)
+    (v1, d1), g1 = jax.value_and_grad(loss, has_aux=True)(250.0, bad)
+    assert np.asarray(d0).tolist() == [False, False] and np.asarray(d1).tolist() == [False, True]
+    assert np.isfinite(float(g1)) and float(g0) != 0.0
+    np.testing.assert_allclose(float(v1), float(v0) / 2, rtol=1e-12)
+    np.testing.assert_allclose(float(g1), float(g0) / 2, rtol=1e-9)
+
+
 def test_batch_equals_single_runs_and_nan_is_isolated():
     pairs, scs, jrefs = free_batch(3, 4)
     g = toy_gains("osc")
@@ -542,6 +566,42 @@ def test_bad_initial_state_and_gains_raise_by_name():
     # traced: the shape is checked, the values are the caller's
     out = jax.vmap(lambda qq: simulate(ARM, sc, CTRL, g, q0=qq).metrics.final_pos_err)(jnp.stack([q, q]))
     assert np.all(np.isfinite(np.asarray(out)))
+    # no gains (or a dict) for a controller whose gains are a Module: an AttributeError inside
+    for gains in (None, {"kp": 1.0}):
+        with pytest.raises(ValueError, match="^gains: Toy takes ToyGains"):
+            simulate(ARM, sc, CTRL, gains)
+    # a reference that cannot be run: no samples, more samples than rows, a sample time <= 0
+    # (before: NaN errors, rows that do not exist, or nothing integrated, all with status 0)
+    ref = sc.reference
+    for field, value, match in [("n_samples", 0, "n_samples: expected 1 to 30"),
+                                ("n_samples", 31, "n_samples: expected 1 to 30"),
+                                ("ts", 0.0, "ts: expected a finite sample time > 0"),
+                                ("ts", -0.01, "ts: expected a finite sample time > 0")]:
+        broken = eqx.tree_at(lambda s: getattr(s.reference, field), sc, jnp.asarray(value, getattr(ref, field).dtype))
+        with pytest.raises(ValueError, match=f"^scenario.reference.{match}"):
+            simulate(ARM, broken, CTRL, g)
+    with pytest.raises(ValueError, match="^points_per_sample: expected an int >= 1"):
+        simulate_dense(ARM, sc, CTRL, g, points_per_sample=0)
+
+
+def test_batch_with_qd0_alone_starts_every_member_at_the_arms_q0():
+    """``simulate_batch(qd0=...)`` without ``q0`` gave every member the whole ``(R, n)`` ``qd0``
+    (a shape error in ``rnea``); each member now starts at ``arm.q0`` with its own ``qd0`` row, as
+    single runs do, and a ``q0`` given as a list compiles once for all values."""
+    pairs, scs, jrefs = free_batch(5, 2)
+    g = toy_gains("osc")
+    qd0 = np.array([[0.1] * 7, [-0.2] * 7])
+    batch = simulate_batch(ARM, stack_scenarios(scs), CTRL, g, ik=jrefs, qd0=qd0)
+    for i, (sc, jref) in enumerate(pairs):
+        single = simulate(ARM, sc, CTRL, g, ik=jref, qd0=qd0[i])
+        np.testing.assert_allclose(np.asarray(batch.q[i]), np.asarray(single.q), rtol=0, atol=1e-12)
+    q = [float(v) for v in np.asarray(ARM.q0)]
+    from conftest import backend_compiles
+
+    with backend_compiles() as compiles:
+        for dq in (0.0, 0.01):
+            simulate(ARM, pairs[0][0], CTRL, g, ik=pairs[0][1], q0=[v + dq for v in q])
+    assert len(compiles) <= 1, compiles  # a list of floats was static: one compilation per value
 
 
 def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():

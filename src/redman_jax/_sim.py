@@ -393,19 +393,27 @@ def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, p
     """``dy/dt`` of the closed loop for the held sample ``rs``; zero when ``active`` is False or the
     member diverged (see the module docstring)."""
     dtype = y.q.dtype
-    out = controller(gains, arm, ControlState(t=t, q=y.q, qd=y.qd, z=_unpack_z(y.z)), rs, env)
+    # A NaN state or reference (a diverged member, a poisoned seed) is read as 0 and the member
+    # flagged below: the closed loop's partials then stay finite there, so in reverse mode the
+    # member's zero cotangent gives it a zero gradient instead of NaN (0 * NaN), which the shared
+    # gains summed over the batch would pass to every member. Identity on finite inputs.
+    finite_in = _all_finite((y.q, y.qd, y.z, rs))
+    clean = lambda x: jnp.where(jnp.isfinite(x), x, 0.0).astype(x.dtype)  # noqa: E731
+    q, qd, z = clean(y.q), clean(y.qd), clean(y.z)
+    rs = jax.tree.map(clean, rs)
+    out = controller(gains, arm, ControlState(t=t, q=q, qd=qd, z=_unpack_z(z)), rs, env)
     dz = _pack_z(out.dz, dtype)
-    qdd = forward_dynamics(arm, y.q, y.qd, out.tau, params.contact)
-    kin = kinematics(arm, y.q)
-    dmin = _min_poi_distance(arm, kin, y.q, env.obstacles)
+    qdd = forward_dynamics(arm, q, qd, out.tau, params.contact)
+    kin = kinematics(arm, q)
+    dmin = _min_poi_distance(arm, kin, q, env.obstacles)
     in_collision = jnp.any(dmin < _poi_thresholds(arm, dtype))
-    outside = jnp.any(arm.limited & ((y.q < arm.q_min) | (y.q > arm.q_max)))
-    ok = (_all_finite((qdd, dz, y.q, y.qd, y.z))
-          & jnp.all(jnp.abs(y.q) < params.q_bound) & jnp.all(jnp.abs(y.qd) < params.qd_bound))
+    outside = jnp.any(arm.limited & ((q < arm.q_min) | (q > arm.q_max)))
+    ok = (finite_in & _all_finite((qdd, dz))
+          & jnp.all(jnp.abs(q) < params.q_bound) & jnp.all(jnp.abs(qd) < params.qd_bound))
     on = ok & active
     gate = lambda x: jnp.where(on, jnp.where(jnp.isfinite(x), x, 0.0), 0.0).astype(x.dtype)
     f = jnp.stack([on & in_collision, on & outside, active & ~ok]).astype(dtype)
-    return _Y(q=gate(y.qd), qd=gate(qdd), z=jax.tree.map(gate, dz), f=f)
+    return _Y(q=gate(qd), qd=gate(qdd), z=jax.tree.map(gate, dz), f=f)
 
 
 def solver_name(params: SimParams, controller) -> str:
@@ -929,7 +937,20 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=Non
     R = scenario.reference.p.shape[0] if batched else None
     for name, x in (("q0", q0), ("qd0", qd0)):
         check_initial_state(name, x, arm.n_dof, R)
+    _check_reference(scenario.reference)
     _check_gains(controller, gains, R if batch_gains else None)
+
+
+def _check_reference(ref) -> None:
+    """Where concrete: ``1 <= n_samples <= capacity`` and a finite, positive ``ts`` (0 samples ran
+    as a run of NaN errors and no flag, more than the capacity reported rows that do not exist, and
+    ``ts <= 0`` integrated nothing, all with status 0)."""
+    n, ts = concrete(ref.n_samples), concrete(ref.ts)
+    if n is not None and (np.any(n < 1) or np.any(n > ref.capacity)):
+        raise ValueError(f"scenario.reference.n_samples: expected 1 to {ref.capacity} (the "
+                         f"reference's capacity), got {n}")
+    if ts is not None and not np.all(np.isfinite(ts) & (ts > 0)):
+        raise ValueError(f"scenario.reference.ts: expected a finite sample time > 0, got {ts}")
 
 
 def _check_gains(controller, gains, R) -> None:
@@ -937,8 +958,7 @@ def _check_gains(controller, gains, R) -> None:
     of another controller failed inside the control law with an ``AttributeError``), and with
     ``batch_gains`` (``R`` runs) a leading axis ``R`` on every array."""
     default = controller.default_gains()
-    if (isinstance(default, eqx.Module) and isinstance(gains, eqx.Module)
-            and not isinstance(gains, type(default))):
+    if isinstance(default, eqx.Module) and not isinstance(gains, type(default)):  # None, a dict, ...
         raise ValueError(f"gains: {type(controller).__name__} takes {type(default).__name__}, "
                          f"got {type(gains).__name__}")
     if R is not None:
@@ -1010,7 +1030,14 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     params = _in_precision(arm, scenario, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
     scenario = _with_layout(arm, scenario, params, 1)
+    q0, qd0 = _as_state(q0, scenario), _as_state(qd0, scenario)
     return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
+
+
+def _as_state(x, scenario):
+    """An initial state as an array in the run's precision (None kept): a list or tuple of Python
+    floats would be static to the compiled run and recompile it for every new value."""
+    return None if x is None else jnp.asarray(x, scenario.reference.p.dtype)
 
 
 def _with_used_bound(scenario, used):
@@ -1175,10 +1202,13 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
                   batch_gains=batch_gains)
     params = _in_precision(arm, scenarios, gains, ik, params)
     jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
+    R = int(scenarios.reference.p.shape[0])
+    q0, qd0 = _as_state(q0, scenarios), _as_state(qd0, scenarios)
+    if q0 is None and qd0 is not None:  # each member from the arm's q0 (qd0 takes q0's axis)
+        q0 = jnp.broadcast_to(arm.q0.astype(qd0.dtype), (R, arm.n_dof))
     if q0 is not None and qd0 is None:
         qd0 = jnp.zeros_like(jnp.asarray(q0))
     gains_axis, q0_axis = 0 if batch_gains else None, None if q0 is None else 0
-    R = int(scenarios.reference.p.shape[0])
     k = _chunks(threads, R, (scenarios, gains, jref, q0, qd0, params))
     if k == 1:
         return _simulate_members(arm, scenarios, controller, gains, jref, q0, qd0, params,
@@ -1290,6 +1320,8 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
     params = _in_precision(arm, scenario, gains, ik, params)
     if controller.uses_guidance:
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
+    check_count("points_per_sample", points_per_sample, 1)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
     scenario = _with_layout(arm, scenario, params, 1)
+    q0, qd0 = _as_state(q0, scenario), _as_state(qd0, scenario)
     return _simulate_dense_jit(arm, scenario, controller, gains, jref, q0, qd0, params, points_per_sample)
