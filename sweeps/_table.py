@@ -8,10 +8,13 @@ import math
 
 def ablation_config(args, controllers, allowed_cases):
     """The ``SweepConfig`` of an ablation script from its ``--out --arms --cases --seeds
-    --max-retries --jobs --quiet`` arguments (figures off: the script prints its own table)."""
+    --max-retries --jobs --quiet`` arguments (figures off: the script prints its own table).
+    Call it before any JAX work: it gives this process the command line's setup for a sweep
+    (``prepare_sweep_process``), so the table is the same for any ``--jobs``."""
     from redman_jax._cli import parse_int_list, parse_name_list
-    from redman_jax._study import SweepConfig, _jobs
+    from redman_jax._study import SweepConfig, _jobs, prepare_sweep_process
 
+    prepare_sweep_process(args.jobs)
     arms = tuple(a.strip() for a in args.arms.split(",") if a.strip())
     return SweepConfig(out=args.out, arms=arms, cases=parse_name_list(args.cases, "cases", allowed_cases),
                        seeds=parse_int_list(args.seeds, "seeds"), controllers=tuple(controllers),

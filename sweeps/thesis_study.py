@@ -37,7 +37,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> int:
     args = parse_args(argv)
     from redman_jax._report import headline_table
-    from redman_jax._study import SweepConfig, load_runs, run_sweep
+    from redman_jax._study import SweepConfig, load_runs, prepare_sweep_process, run_sweep
+
+    prepare_sweep_process(args.jobs)  # as the command line: the same table for any --jobs
 
     cfg = SweepConfig.from_args(args, study=True)  # what `redman-jax study` builds from the same options
     out = run_sweep(cfg)

@@ -46,6 +46,7 @@ def test_parse_int_list():
         (["sweep", "--arms", ","], "arms: empty"),
         (["--seeds", "x"], "redman-jax study: error: --seeds"),
         (["--seeds", "1-20000000000"], "--seeds: range '1-20000000000' holds more than 1,000,000 values"),
+        (["demo", "--seed", "99999999999999999999"], "demo: error: --seed: at most 2147483647"),
         (["demo", "--arm", "seven"], "demo: error: --arm: 'seven'"),  # its own option, not --arms
         (["demo", "--arm", "urdf:robot.urdf"], "demo: error: --arm: URDF arms are given as"),  # no subcommand: the study's options
     ],
@@ -55,6 +56,16 @@ def test_cli_rejects_bad_options(argv, message, capsys, tmp_path):
     assert code == 2
     err = capsys.readouterr().err
     assert message in err and "error" in err
+
+
+def test_an_out_that_is_a_file_is_refused_by_every_subcommand(capsys, tmp_path):
+    """``--out`` naming a file: a clear message and exit 2 (``demo`` and ``tune`` raised
+    ``FileExistsError`` with a traceback)."""
+    f = tmp_path / "a-file"
+    f.write_text("")
+    for argv in (["demo", "--no-animation"], ["tune"], ["sweep"]):
+        assert main([*argv, "--out", str(f)]) == 2
+        assert "is a file, not a folder" in capsys.readouterr().err
 
 
 def test_sweep_configuration_is_checked_before_any_work(tmp_path):
@@ -675,3 +686,31 @@ def test_the_table_does_not_depend_on_jobs_or_on_a_resume(tmp_path):
     victim.unlink()  # as if killed before its last unit: one group left
     shutil.rmtree(tmp_path / "two" / "traces")
     assert sweep(tmp_path / "two", 2) == one
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="needs core affinity (Linux)")
+def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
+    """``prepare_sweep_process`` (the command line and the sweep scripts call it first): the
+    workers' XLA flags, and for ``--jobs 1`` one core, so that the units this process computes
+    round as a worker's; where JAX's backend already runs it changes nothing."""
+    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts, prepare_sweep_process
+
+    code = ("import os, sys; from redman_jax._study import prepare_sweep_process; "
+            "prepare_sweep_process(sys.argv[1]); import jax.numpy as j; j.zeros(1).block_until_ready(); "
+            "print(len(os.sched_getaffinity(0))); print(os.environ.get('XLA_FLAGS', ''))")
+    env = dict(os.environ)
+    cores = len(os.sched_getaffinity(0))
+    for jobs, want in (("1", 1), ("2", cores)):
+        done = subprocess.run([sys.executable, "-c", code, jobs], capture_output=True, text=True, env=env,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        n, flags = done.stdout.splitlines()[-2:]
+        assert int(n) == want
+        if _xla_accepts(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)):
+            assert set(WORKER_XLA_FLAGS) <= set(flags.split())
+    import jax.numpy as jnp
+
+    jnp.zeros(1).block_until_ready()  # this process's backend runs: nothing changes
+    before = (os.sched_getaffinity(0), os.environ.get("XLA_FLAGS"))
+    prepare_sweep_process("1")
+    assert (os.sched_getaffinity(0), os.environ.get("XLA_FLAGS")) == before

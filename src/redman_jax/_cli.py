@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 __all__ = ["main", "build_parser", "parse_int_list", "parse_name_list"]
 
@@ -143,6 +144,12 @@ def _join_distributed(args) -> None:
     initialize(args.coordinator, args.num_processes, args.process_id)
 
 
+def _seed_max() -> int:
+    from ._study import SEED_MAX
+
+    return SEED_MAX
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -152,13 +159,11 @@ def main(argv=None) -> int:
     command = args.command
     try:
         if command in ("study", "sweep"):
-            from ._study import SweepConfig, adopt_worker_xla_flags, compute_here_as_a_worker, run_sweep
+            from ._study import SweepConfig, prepare_sweep_process, run_sweep
 
             # before any JAX work, so that the table is the same for any --jobs: the workers' XLA
             # flags, and for --jobs 1 (units computed here) a worker's one core
-            adopt_worker_xla_flags()
-            if str(args.jobs).strip() == "1" and not args.distributed:
-                compute_here_as_a_worker()
+            prepare_sweep_process(args.jobs, args.distributed)
             _join_distributed(args)
             cfg = SweepConfig.from_args(args, study=(command == "study"))
             run_sweep(cfg)
@@ -166,6 +171,10 @@ def main(argv=None) -> int:
             from ._study import render_report
 
             render_report(args.out)
+        elif command in ("tune", "demo") and Path(args.out).exists() and not Path(args.out).is_dir():
+            raise CLIError(f"--out: {args.out!r} is a file, not a folder")
+        elif command == "demo" and args.seed > _seed_max():
+            raise CLIError(f"--seed: at most {_seed_max()} (a JAX PRNG key), got {args.seed}")
         elif command == "tune":
             from ._tuning import tune_cli
 

@@ -739,6 +739,16 @@ def compute_here_as_a_worker() -> bool:
     return True
 
 
+def prepare_sweep_process(jobs, distributed: bool = False) -> None:
+    """Call first in a process that will run a sweep (the command line and the scripts under
+    ``sweeps/`` do), before any JAX work: the workers' XLA flags, and for ``jobs`` 1 (units
+    computed in this process) a worker's one core, so that the table is the same for any
+    ``--jobs`` (:func:`adopt_worker_xla_flags`, :func:`compute_here_as_a_worker`)."""
+    adopt_worker_xla_flags()
+    if str(jobs).strip() == "1" and not distributed:
+        compute_here_as_a_worker()
+
+
 @contextlib.contextmanager
 def _worker_xla_flags(extra=WORKER_XLA_FLAGS):
     """Run the body with ``XLA_FLAGS`` extended by ``extra`` in this process's environment, which
