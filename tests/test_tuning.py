@@ -189,6 +189,18 @@ def test_bad_inputs_raise_naming_the_field():
             tune_gains(arm, "acceleration", **kw)
         with pytest.raises(ValueError, match=match):
             tune_gains_batch(arm, "acceleration", make_controller("acceleration").default_gains(), **kw)
+    # targets that are not finite and > 0 (inf counted every run as settled, a batch's own targets
+    # were not checked) and start gains the log-gain steps cannot take (a negative one came back NaN)
+    js = make_controller("joint_space").default_gains()
+    two = jax.tree.map(lambda x: jnp.stack([x, x]), js)
+    for call, match in [(lambda: tune_gains(arm, "joint_space", float("inf")), "^target"),
+                        (lambda: tune_gains(arm, "joint_space", 0.3, gains=type(js)(kp=-1000.0)), "^gains.kp"),
+                        (lambda: tune_gains(arm, "joint_space", 0.3, gains=type(js)(kp=0.0)), "^gains.kp"),
+                        (lambda: tune_gains_batch(arm, "joint_space", two, target=-0.1), "^target"),
+                        (lambda: tune_gains_batch(arm, "joint_space", two, target=[0.3, 0.0]), "^target"),
+                        (lambda: tune_gains_batch(arm, "joint_space", two, 0.3, objective="foo"), "^objective")]:
+        with pytest.raises(ValueError, match=match):
+            call()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -86,7 +86,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from ._math import as_float, check_count, check_initial_state, check_positive
+from ._math import as_float, check_count, check_initial_state, check_positive, concrete
 from ._control_types import AbstractController, ControlOutput, ControlState
 from ._controllers import CONTROLLERS, make_controller
 from ._kinematics import end_effector_pose, jacobian, kinematics
@@ -799,10 +799,28 @@ def _prepare(arm, controller, objective, torque_bound, target, experiment, param
     params = _sim_params(params)
     if target is None:
         target = target_settling_time(arm, experiment, params) if objective == "settling" else 1.0
-    if not (float(target) > 0):
-        raise ValueError(f"target: settling time must be > 0 s, got {target}")
+    _check_target(target)
     base = controller.default_gains() if gains is None else gains
+    _check_start_gains(base, name)
     return controller, name, experiment, params, float(target), base
+
+
+def _check_target(target) -> None:
+    """Finite settling times > 0, each (+inf let every run count as settled at once)."""
+    t = np.asarray(target, float)
+    if t.size == 0 or not np.all(np.isfinite(t) & (t > 0)):
+        raise ValueError(f"target: settling time(s) must be finite and > 0 s, got {target}")
+
+
+def _check_start_gains(gains, name) -> None:
+    """The tuned gains start finite and > 0, where concrete: the tuner steps in ``log g`` (a
+    negative gain gave NaN and was handed back as tuned, a zero one never moved)."""
+    fields = TUNABLE[name]
+    for f in fields:
+        v = concrete(getattr(gains, f))
+        if v is not None and not np.all(np.isfinite(v) & (v > 0)):
+            raise ValueError(f"gains.{f}: the tuner works on log-gains and needs finite values > 0 to "
+                             f"start from, got {v}")
 
 
 def settling_gradient(arm: Arm, controller, gains, experiment: StepExperiment, params=None,
@@ -873,6 +891,10 @@ def tune_gains_batch(arm: Arm, controller, inits, target=None, steps: int = 30,
     the same structure and ``experiments`` their stacked experiments (default: built per arm).
     ``target``: a scalar or ``(B,)`` (default: each arm's joint-space settling time)."""
     _check_schedule(steps, learning_rate)
+    if objective not in ("settling", "tracking"):  # before any experiment is built (an IK run)
+        raise ValueError(f"objective: expected 'settling' or 'tracking', got {objective!r}")
+    if target is not None:
+        _check_target(target)
     if isinstance(controller, str):
         controller = make_controller(controller)
     B = jax.tree.leaves(inits)[0].shape[0]
@@ -896,6 +918,8 @@ def tune_gains_batch(arm: Arm, controller, inits, target=None, steps: int = 30,
     ex0 = jax.tree.map(lambda x: x[0], experiments) if arms_batched else experiments
     controller, name, _, params, _, _ = _prepare(arm_list[0], controller, objective, torque_bound,
                                                  1.0, ex0, params, None)
+    _check_target(target)
+    _check_start_gains(inits, name)
     return _tune(arm, controller, name, inits, experiments, params,
                  np.broadcast_to(np.asarray(target, float), (B,)), steps, learning_rate, torque_bound,
                  objective, settings, batched=True, arms_batched=arms_batched, method=method)
