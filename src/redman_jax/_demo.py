@@ -50,21 +50,28 @@ def run_demo(arm_spec: str = "9", case: str = "simple", seed: int = 1, controlle
 
     scen = jax.tree.map(lambda x: np.asarray(x)[0], built["scenarios"])
     n = int(row["n_samples"])
+    summary = json_ready(dict(row))  # first: a figure that fails leaves the run's numbers
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str, allow_nan=False))
 
+    # a run that diverged is drawn up to its last finite sample (its state is inf after it)
     q_traj = _joint_path(arm, built, controller)
-    ax = plot_scenario(scen, arm=arm, q=q_traj[n - 1])
-    p = tr["p"][0][:n]
-    ax.plot(p[:, 0], p[:, 1], p[:, 2], color="crimson", lw=1.6, label=f"{controller} (actual)")
+    finite = np.all(np.isfinite(q_traj[:n]), axis=1) & np.all(np.isfinite(tr["p"][0][:n]), axis=1)
+    m = int(np.argmin(finite)) if not finite.all() else n
+    ax = plot_scenario(scen, arm=arm, q=q_traj[m - 1] if m > 0 else np.asarray(arm.q0))
+    p = tr["p"][0][:m]
+    label = f"{controller} (actual)" + ("" if m == n else f", diverged after {m} samples")
+    ax.plot(p[:, 0], p[:, 1], p[:, 2], color="crimson", lw=1.6, label=label)
     ax.legend(loc="upper left", fontsize=7)
     ax.figure.savefig(out / "scene.png", dpi=130, bbox_inches="tight")
     plt.close(ax.figure)
 
     fig, axs = plt.subplots(2, 1, figsize=(6.4, 4.6), sharex=True)
     t = np.arange(1, n + 1) * float(np.asarray(scen.reference.ts))
-    axs[0].plot(t, 1e3 * tr["pos_err"][0][:n], color="C0")
+    shown = lambda x: np.where(np.isfinite(x), x, np.nan)  # noqa: E731 -- inf after a divergence
+    axs[0].plot(t, 1e3 * shown(tr["pos_err"][0][:n]), color="C0")
     axs[0].set_ylabel("|e_p| [mm]")
     rot = tr["rot"][0][:n] > 0.5
-    ori = np.where(rot, tr["ori_err"][0][:n], np.nan)
+    ori = np.where(rot, shown(tr["ori_err"][0][:n]), np.nan)
     axs[1].plot(t, ori, color="C1")
     axs[1].set_ylabel("|e_o| (rot on)")
     axs[1].set_xlabel("t [s]")
@@ -78,10 +85,8 @@ def run_demo(arm_spec: str = "9", case: str = "simple", seed: int = 1, controlle
     fig.savefig(out / "errors.png", dpi=130)
     plt.close(fig)
 
-    if animation:
-        _animate(arm, scen, q_traj[:n], out / "animation.gif")
-    summary = json_ready(dict(row))
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str, allow_nan=False))
+    if animation and m > 0:
+        _animate(arm, scen, q_traj[:m], out / "animation.gif")
     return summary
 
 

@@ -76,6 +76,7 @@ import functools
 import json
 import math
 import time
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -1110,15 +1111,19 @@ def tune_cli(args) -> dict:
         r = tune_gains(arm, name, target, steps=args.steps, experiment=exp)
         tuned[name] = gains_to_dict(r.gains, r.fields)
         rows.append((name, before[name][2], float(r.settling_time), r.iterations, r.compile_time,
-                     r.wall_time - r.compile_time, tuned[name]))
+                     r.wall_time - r.compile_time, tuned[name], bool(np.all(np.asarray(r.settled)))))
     write_gains_json(out / "tuned_gains.json", tuned)
     step_response_figure(arm, out / "fig3_6_after.png", tuned, fig_ctrls,
                          title=f"After tuning (target {target:.3f} s), {dof}-DOF")
     print(f"target settling time (joint space, Kp 1000, Kd 100): {target:.3f} s")
     print(f"{'controller':<18}{'before [s]':>11}{'after [s]':>11}{'iters':>7}{'compile [s]':>13}"
-          f"{'run [s]':>9}  gains")
-    for name, Tb, Ta, it, ct, wt, g in rows:
+          f"{'run [s]':>9}{'settled':>9}  gains")
+    for name, Tb, Ta, it, ct, wt, g, ok in rows:
         gs = ", ".join(f"{k}={v:.4g}" for k, v in g.items())
-        print(f"{name:<18}{Tb:>11.3f}{Ta:>11.3f}{it:>7d}{ct:>13.1f}{wt:>9.1f}  {gs}")
+        print(f"{name:<18}{Tb:>11.3f}{Ta:>11.3f}{it:>7d}{ct:>13.1f}{wt:>9.1f}{'yes' if ok else 'NO':>9}  {gs}")
     print(f"wrote {out / 'tuned_gains.json'}, {out / 'fig3_6_before.png'}, {out / 'fig3_6_after.png'}")
+    unsettled = [r[0] for r in rows if not r[7]]
+    if unsettled:  # e.g. PID without gravity compensation: its step never settles, the gradient vanishes
+        print(f"warning: {', '.join(unsettled)} did not settle within the experiment; their gains in "
+              f"tuned_gains.json are the last iterate, not a tuned result", file=sys.stderr)
     return tuned
