@@ -399,7 +399,7 @@ def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, p
     # gains summed over the batch would pass to every member. Identity on finite inputs.
     finite_in = _all_finite((y.q, y.qd, y.z, rs))
     clean = lambda x: jnp.where(jnp.isfinite(x), x, 0.0).astype(x.dtype)  # noqa: E731
-    q, qd, z = clean(y.q), clean(y.qd), clean(y.z)
+    q, qd, z = clean(y.q), clean(y.qd), jax.tree.map(clean, y.z)  # z: an array or a pytree
     rs = jax.tree.map(clean, rs)
     out = controller(gains, arm, ControlState(t=t, q=q, qd=qd, z=_unpack_z(z)), rs, env)
     dz = _pack_z(out.dz, dtype)
