@@ -42,6 +42,24 @@ if os.environ.get("REDMAN_TEST_DEFAULT_EMITTERS") != "1":
 DEFAULT_EMITTERS = LEGACY_EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "").split()
 
 
+def run_under_default_emitters(test_file, names, passed: int) -> None:
+    """Run the tests ``names`` of ``test_file`` in a subprocess with XLA's default emitters (the
+    bit identities of separately compiled programs that the older emitters do not keep) and
+    assert that ``passed`` of them pass."""
+    import subprocess
+    import sys
+
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != LEGACY_EMITTERS_FLAG)
+    env = dict(os.environ, XLA_FLAGS=flags, REDMAN_TEST_DEFAULT_EMITTERS="1")
+    env.pop("PYTEST_XDIST_WORKER", None)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:xdist", "-p", "no:cacheprovider",
+         str(test_file), "-k", " or ".join(names)],
+        env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert f"{passed} passed" in proc.stdout, proc.stdout[-2000:]
+
+
 def _pin_xdist_worker():
     """Under pytest-xdist (``make test`` runs ``-n 2``) each worker process runs on a core of its
     own, as the study's workers do: two unpinned XLA processes contend for both cores

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import DEFAULT_EMITTERS, LEGACY_EMITTERS_FLAG
+from conftest import DEFAULT_EMITTERS, run_under_default_emitters
 
 import redman_jax as rj
 from redman_jax._fields import obstacle_field_gradient, obstacle_field_potential
@@ -47,20 +47,7 @@ _default_emitters_only = pytest.mark.skipif(
 def test_bit_identities_hold_under_the_default_emitters():
     if DEFAULT_EMITTERS:
         pytest.skip("the default emitters are in use: the tests run in this process")
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != LEGACY_EMITTERS_FLAG)
-    env = dict(os.environ, XLA_FLAGS=flags, REDMAN_TEST_DEFAULT_EMITTERS="1")
-    env.pop("PYTEST_XDIST_WORKER", None)
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:xdist", "-p", "no:cacheprovider",
-         str(Path(__file__)), "-k", " or ".join(_BIT_IDENTITY_TESTS)],
-        env=env, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "6 passed" in proc.stdout, proc.stdout[-2000:]
+    run_under_default_emitters(__file__, _BIT_IDENTITY_TESTS, 6)
 
 
 def _configs(arm, rng, k, spread=1.2):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import redman_jax  # noqa: F401  (x64)
-from conftest import DEFAULT_EMITTERS, LEGACY_EMITTERS_FLAG
+from conftest import DEFAULT_EMITTERS, run_under_default_emitters
 from redman_jax._controllers import CONTROLLERS
 from redman_jax._kinematics import end_effector_pose, poi_positions
 from redman_jax._obstacles import make_obstacles
@@ -101,20 +101,7 @@ def test_stop_rule_bit_identity_holds_under_the_default_emitters():
     default emitters, as test_nullspace does for its bit identities."""
     if DEFAULT_EMITTERS:
         pytest.skip("the default emitters are in use: the test runs in this process")
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != LEGACY_EMITTERS_FLAG)
-    env = dict(os.environ, XLA_FLAGS=flags, REDMAN_TEST_DEFAULT_EMITTERS="1")
-    env.pop("PYTEST_XDIST_WORKER", None)
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:xdist", "-p", "no:cacheprovider",
-         str(Path(__file__)), "-k", "test_stopping_at_the_stop_rule_changes_nothing_reported"],
-        env=env, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "1 passed" in proc.stdout, proc.stdout[-2000:]
+    run_under_default_emitters(__file__, ["test_stopping_at_the_stop_rule_changes_nothing_reported"], 1)
 
 
 @pytest.mark.skipif(not DEFAULT_EMITTERS, reason="bit identity of the default emitters: run in a "
