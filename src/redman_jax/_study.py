@@ -706,12 +706,7 @@ def adopt_worker_xla_flags(extra=WORKER_XLA_FLAGS) -> bool:
     runs already, or this jaxlib refuses the flags)."""
     import os
 
-    try:
-        from jax._src import xla_bridge
-
-        started = xla_bridge.backends_are_initialized()
-    except (ImportError, AttributeError):
-        started = True
+    started = _backend_started()
     before = os.environ.get("XLA_FLAGS", "")
     flags = _with_flags(before, extra)
     if started or flags == before or not _xla_accepts(flags):
@@ -727,16 +722,25 @@ def compute_here_as_a_worker() -> bool:
     Returns whether it pinned (not where the backend runs already or the platform cannot pin)."""
     import os
 
+    if _backend_started():
+        return False
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, cores[:1])
+    except (AttributeError, OSError):
+        return False
+    return True
+
+
+def _backend_started() -> bool:
+    """Whether this process's JAX backend has started (its XLA flags and CPU pool are fixed then);
+    True where this jax cannot tell, so that nothing is changed under a running backend."""
     try:
         from jax._src import xla_bridge
 
-        if xla_bridge.backends_are_initialized():
-            return False
-        cores = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, cores[:1])
-    except (ImportError, AttributeError, OSError):
-        return False
-    return True
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
 
 
 def prepare_sweep_process(jobs, distributed: bool = False) -> None:
