@@ -163,6 +163,25 @@ def test_bad_shapes_raise():
         solve_qp(P, c, A, l, h, lb[:2], ub)
 
 
+def test_nan_input_is_an_error_eagerly_and_not_converged_traced():
+    """A NaN bound is masked out like an infinite one inside the solver; it must not pass for "no
+    bound": called eagerly it is refused naming the argument, traced the result is not converged
+    (where the same problem with -inf there converges)."""
+    P, c, A, l, h, lb, ub = _grad_problem()
+    bad = lambda v: jnp.asarray(v).at[0].set(jnp.nan)
+    for name, args in (("l", (P, c, A, bad(l), h, lb, ub)), ("h", (P, c, A, l, bad(h), lb, ub)),
+                       ("lb", (P, c, A, l, h, bad(lb), ub)), ("ub", (P, c, A, l, h, lb, bad(ub)))):
+        with pytest.raises(ValueError, match=f"solve_qp: {name}: NaN bound"):
+            solve_qp(*args)
+    with pytest.raises(ValueError, match="solve_qp: c: expected finite"):
+        solve_qp(P, bad(c), A, l, h, lb, ub)
+    with pytest.raises(ValueError, match="solve_qp: P: expected finite"):
+        solve_qp(jnp.asarray(P).at[0, 0].set(jnp.inf), c, A, l, h, lb, ub)
+    traced = jax.jit(lambda lb: solve_qp(P, c, A, l, h, lb, ub))
+    assert bool(traced(jnp.asarray(lb).at[0].set(-jnp.inf)).converged)
+    assert not bool(traced(bad(lb)).converged)
+
+
 def test_settings_change_without_recompile():
     P, c, A, l, h, lb, ub = _grad_problem()
     f = solve_one

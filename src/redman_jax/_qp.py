@@ -45,9 +45,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._math import check_count, check_positive
+from ._math import check_count, check_finite, check_positive, concrete
 
 __all__ = ["QPSettings", "QPSolution", "solve_qp", "solve_box_qp", "qp_residuals"]
 
@@ -366,7 +367,18 @@ def qp_residuals(P, c, A, l, h, lb, ub, x, y, y_box):
     return primal, dual
 
 
-@eqx.filter_jit
+def _check_values(P, c, A, l, h, lb, ub):
+    """Where concrete (an eager call): ``P``, ``c``, ``A`` finite, no bound NaN (infinite bounds
+    are allowed: no bound)."""
+    for name, v in (("P", P), ("c", c), ("A", A)):
+        if v is not None:
+            check_finite(f"solve_qp: {name}", v)
+    for name, v in (("l", l), ("h", h), ("lb", lb), ("ub", ub)):
+        a = None if v is None else concrete(v)
+        if a is not None and a.dtype.kind in "fc" and np.any(np.isnan(a)):
+            raise ValueError(f"solve_qp: {name}: NaN bound (use -inf / inf for no bound), got {a}")
+
+
 def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
              settings: QPSettings = QPSettings()) -> QPSolution:
     """Solve ``min 1/2 x'Px + c'x  s.t.  l <= A x <= h,  lb <= x <= ub`` (see the module docstring).
@@ -378,12 +390,21 @@ def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
     **Returns:** a :class:`QPSolution`. Differentiable in every array argument (implicit
     differentiation at the solution; see the module docstring), jit- and vmap-able.
 
-    **Raises:** ``ValueError`` for inconsistent shapes (at trace time).
+    **Raises:** ``ValueError`` for inconsistent shapes (at trace time) and, for concrete
+    arguments (an eager call), for a NaN or infinity in ``P``, ``c`` or ``A`` or a NaN bound, naming
+    the argument. Traced (inside the caller's ``jit`` / ``vmap``), a NaN bound is never read as "no
+    bound": the solution has ``converged = False``.
 
     Jitted (``equinox.filter_jit``): called eagerly in a Python loop it compiles once per shape
     and ``settings.max_iter`` (its ``lax.while_loop`` body is a new closure at every trace, which
     compiled anew on every call and exhausted LLVM's memory after some hundred calls).
     """
+    _check_values(P, c, A, l, h, lb, ub)
+    return _solve_qp(P, c, A, l, h, lb, ub, settings)
+
+
+@eqx.filter_jit
+def _solve_qp(P, c, A, l, h, lb, ub, settings: QPSettings) -> QPSolution:
     P = jnp.asarray(P)
     c = jnp.asarray(c)
     dtype = jnp.result_type(P.dtype, c.dtype, jnp.float32)
@@ -444,7 +465,9 @@ def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
     # inactive rows feasible with zero dual), so its residuals alone prove optimality; an
     # interior-point iterate also needs its complementarity gap (ok_ip).
     polished_ok = (use & (primal <= eps_abs) & (dual <= eps_abs)) if settings.polish else False
-    converged = ok_ip | polished_ok
+    # a NaN bound is masked out like an infinite one by _make_rows; it must not pass as "no bound"
+    no_nan_bound = ~jnp.any(jnp.isnan(jnp.concatenate([l, h, lb, ub])))
+    converged = (ok_ip | polished_ok) & no_nan_bound
     return QPSolution(x=x, y=y, y_box=y_box, primal_residual=primal, dual_residual=dual, gap=gap,
                       iterations=it, converged=converged)
 
