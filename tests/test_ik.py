@@ -249,10 +249,12 @@ def test_bad_input_raises():
     # a zero or NaN acceleration bound made every bound NaN and every candidate silently invalid
     for kw, field in [({"acc_limit": 0.0}, "acc_limit"), ({"acc_limit": float("nan")}, "acc_limit"),
                       ({"goal_tolerance": -0.1}, "goal_tolerance"), ({"w": -1e-4}, "w"),
-                      ({"ns_speed_limit": 0.0}, "ns_speed_limit")]:
+                      ({"ns_speed_limit": 0.0}, "ns_speed_limit"), ({"K_r": -40.0}, "K_r"),
+                      ({"obstacle_rate": -1.0}, "obstacle_rate"), ({"margin": float("nan")}, "margin"),
+                      ({"activation": float("nan")}, "activation")]:
         with pytest.raises(ValueError, match=f"IKParams.{field}"):
             IKParams(**kw)
-    IKParams(ns_speed_limit=float("inf"), activation=-1.0)  # documented settings stay valid
+    IKParams(ns_speed_limit=float("inf"), activation=-1.0, K_r=0.0, obstacle_rate=0.0)  # documented settings stay valid
 
 
 def test_padded_samples_carry_no_qp_diagnostics(free_run):

@@ -69,7 +69,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import jacobian_from, kinematics, poi_jacobians_from, poi_link_index, poi_positions, poi_positions_from
-from ._math import as_float, check_initial_state, check_positive
+from ._math import as_float, check_finite, check_initial_state, check_positive
 from ._math import cast_floating, clip_norm, quat_error, rot_to_quat
 from ._nullspace import PolicyGains, damped_pinv, ik_policy_gains, joint_limit_policy, nullspace_projector
 from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_normals
@@ -154,8 +154,11 @@ class IKParams(eqx.Module):
         for name in ("acc_limit", "goal_tolerance", "S_t", "S_r", "ori_clip"):
             check_positive(f"IKParams.{name}", getattr(self, name))
         check_positive("IKParams.ns_speed_limit", self.ns_speed_limit, allow_inf=True)
-        for name in ("w", "limit_tolerance"):
+        for name in ("w", "limit_tolerance", "K_r", "obstacle_rate"):
             check_positive(f"IKParams.{name}", getattr(self, name), allow_zero=True)
+        # where concrete: a NaN margin or activation makes the obstacle rows of every QP NaN
+        for name in ("margin", "activation"):
+            check_finite(f"IKParams.{name}", getattr(self, name))
 
 
 class IKResult(eqx.Module):
