@@ -379,6 +379,8 @@ def test_errors_name_the_field(arms):
         SimpleParams(circumradius=float("nan"))
     with pytest.raises(ValueError, match=r"CaseParams\.simple"):
         CaseParams(simple=AgricultureParams())
+    with pytest.raises(ValueError, match=r"CaseParams\.rrt: expected an RRTParams"):
+        CaseParams(rrt={"step": 0.1})  # was passed on to the planner unchecked
     with pytest.raises(ValueError, match="seeds"):
         make_scenarios("warehouse", [], arm)
 

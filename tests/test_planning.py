@@ -379,6 +379,11 @@ def test_bad_parameters_raise():
         RRTParams(max_nodes=1)
     with pytest.raises(ValueError, match="near_radius"):
         RRTParams(rrt_star=True, near_radius=0.02)
+    # counts were truncated without a word (2.5 iterations -> 2)
+    for kw in (dict(max_iter=2.5), dict(refine_iters=True), dict(max_nodes=4096.5), dict(dense=float("nan"))):
+        with pytest.raises(ValueError, match=f"RRTParams.{next(iter(kw))}: expected a whole number"):
+            RRTParams(**kw)
+    assert int(RRTParams(max_iter=2e4).max_iter) == 20000
     obs, start, goal = _simple_scene(0)
     key = jax.random.PRNGKey(0)
     with pytest.raises(ValueError, match="start"):

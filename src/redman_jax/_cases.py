@@ -347,6 +347,10 @@ class CaseParams(_Params):
             want = _CASE_PARAM_TYPES[c]
             if not isinstance(sub, want):
                 raise ValueError(f"CaseParams.{c}: expected {want.__name__}, got {type(sub).__name__}")
+        from ._planning import RRTParams
+
+        if self.rrt is not None and not isinstance(self.rrt, RRTParams):
+            raise ValueError(f"CaseParams.rrt: expected an RRTParams or None, got {type(self.rrt).__name__}")
 
     def case(self, name: str):
         return getattr(self, _check_case(name))

@@ -78,6 +78,15 @@ __all__ = [
 _TINY = 1e-9  # [m] two points closer than this are the same point
 
 
+def _check_integral(name: str, v) -> None:
+    """Refuse a concrete count that is not a whole number (a bool, 2.5, NaN); None passes."""
+    a = None if v is None else concrete(v)
+    if a is None:
+        return
+    if a.dtype.kind not in "iuf" or (a.dtype.kind == "f" and not np.all(np.isfinite(a) & (a == np.round(a)))):
+        raise ValueError(f"{name}: expected a whole number, got {a}")
+
+
 class RRTParams(eqx.Module):
     """Planner and trajectory parameters (SPEC U19, U20; thesis 3.2.3).
 
@@ -143,6 +152,12 @@ class RRTParams(eqx.Module):
                 raise ValueError(f"RRTParams.edge_res: expected a finite positive value, got {rv}")
             return int(math.ceil(float(np.max(lv)) / float(np.min(rv)) - 1e-9)) + 1
 
+        # counts: int() and jnp.asarray(., int) would truncate 2.5 to 2 without a word
+        for name, v in (("max_iter", max_iter), ("refine_iters", refine_iters), ("max_nodes", max_nodes),
+                        ("path_capacity", path_capacity), ("edge_points", edge_points),
+                        ("near_points", near_points), ("k_near", k_near), ("window", window),
+                        ("subsample", subsample), ("dense", dense)):
+            _check_integral(f"RRTParams.{name}", v)
         self.step = jnp.asarray(step, float)
         self.goal_bias = jnp.asarray(goal_bias, float)
         self.safety = jnp.asarray(safety, float)
