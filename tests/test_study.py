@@ -283,6 +283,29 @@ def test_resume_after_interruption_equals_uninterrupted(monkeypatch, tmp_path):
     assert cfg["seeds"] == [1, 2]
 
 
+def test_an_interrupted_sweep_leaves_the_folders_table_and_configuration_a_pair(monkeypatch, tmp_path):
+    """``config.json`` is written with ``runs.csv``, at the end: a sweep with other seeds
+    interrupted in the folder of a finished one leaves that one's table and configuration (written
+    at the start, the new configuration was paired with the old table in the report)."""
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path))
+    table = (tmp_path / "runs.csv").read_bytes()
+    other = dataclasses.replace(_config(tmp_path), seeds=(3, 4))
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls, interrupt_after=1)
+    with pytest.raises(_Interrupt):
+        run_sweep(other)
+    assert len([c for c in calls if c[0] == "run"]) == 2  # one unit of the new sweep was finished
+    assert (tmp_path / "runs.csv").read_bytes() == table
+    assert json.loads((tmp_path / "config.json").read_text())["seeds"] == [1, 2]
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(other)
+    assert json.loads((tmp_path / "config.json").read_text())["seeds"] == [3, 4]
+    assert {r["seed"] for r in load_runs(tmp_path)} == {3, 4}
+
+
 def test_union_seconds_counts_nested_spans_once():
     from redman_jax._study import union_seconds
 
@@ -657,6 +680,38 @@ def test_demo_writes_its_figures_and_a_strict_json_summary(tmp_path):
     assert back == summary
     assert back["controller"] == "joint_space" and back["t_lme_per_sample"] is None
     assert back["n_samples"] > 0 and np.isfinite(back["mean_pos_error"])
+
+
+def test_demo_draws_a_diverged_run_up_to_its_last_finite_sample(monkeypatch, tmp_path):
+    """A run whose state turned inf after sample ``k`` (7-DOF simple PID does) stopped ``demo``
+    with matplotlib's "Axis limits cannot be NaN or Inf" and no summary; it is drawn up to its last
+    finite sample and every file is written. Fakes for the units (a real scene, no simulation)."""
+    import jax
+
+    from redman_jax import _demo
+    from redman_jax._cases import make_scenario
+    from redman_jax._study import arm_from_spec
+
+    arm = arm_from_spec("7")
+    scen = make_scenario("simple", 1, arm)
+    N, n, k = scen.reference.p.shape[0], int(scen.reference.n_samples), 40
+    assert n > k + 1
+    diverged = lambda x: np.where((np.arange(N) >= k).reshape((N,) + (1,) * (x.ndim - 1)), np.inf, x)
+    p = diverged(np.asarray(scen.reference.p))
+    traces = {"p": p[None], "pos_err": diverged(np.full(N, 1e-3))[None],
+              "ori_err": diverged(np.full(N, 1e-2))[None], "rot": np.asarray(scen.reference.rot)[None]}
+    row = {"case": "simple", "seed": 1, "seed_used": 1, "controller": "pid", "success": False,
+           "n_samples": n, "mean_pos_error": float("inf")}
+    monkeypatch.setattr(pipe, "build_case", lambda *a, **kw: {
+        "scenarios": jax.tree.map(lambda x: np.asarray(x)[None], scen), "ik": None})
+    monkeypatch.setattr(pipe, "run_controller", lambda *a, **kw: {"rows": [row], "traces": traces})
+    q = diverged(np.tile(np.asarray(arm.q0), (N, 1)))
+    monkeypatch.setattr(_demo, "_joint_path", lambda *a: q)
+    summary = _demo.run_demo("7", "simple", 1, "pid", tmp_path, animation=True)
+    for name in ("scene.png", "errors.png", "animation.gif", "summary.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert strict_json_loads((tmp_path / "summary.json").read_text()) == summary
+    assert summary["mean_pos_error"] is None  # inf: not a JSON number
 
 
 @pytest.mark.slow

@@ -385,3 +385,35 @@ def test_ik_joint_target_must_reach_well_inside_the_band(monkeypatch):
         step_experiment(arm, joint_target="ik")
     monkeypatch.setattr(tuning, "_ik_step_target", lambda a, sc, q0: (q_star, jnp.asarray(5e-5)))
     assert step_experiment(arm, joint_target="ik").kind == "step"
+
+
+def test_tune_cli_says_which_controllers_did_not_settle(monkeypatch, tmp_path, capsys):
+    """``redman-jax tune`` marks each controller settled or not and warns on stderr where the gains
+    it writes are only the last iterate (PID without gravity compensation never settles). The
+    simulations are replaced by fakes: this checks the command's reporting."""
+    import argparse
+    import types
+
+    import redman_jax._tuning as tuning
+
+    def fake_tune(arm, name, target, steps, experiment):
+        fields = tuning.TUNABLE[name]
+        gains = types.SimpleNamespace(**{f: 2.0 for f in fields})
+        settled = name != "pid"
+        return tuning.TuneResult(gains=gains, fields=fields, settling_time=0.3 if settled else float("inf"),
+                                 settled=np.asarray(settled), target=target, initial_settling_time=0.5,
+                                 tracking_rms=np.nan, max_torque_ratio=np.nan, history={}, iterations=steps + 1,
+                                 wall_time=2.0, compile_time=1.0)
+
+    monkeypatch.setattr(tuning, "step_experiment", lambda arm: None)
+    monkeypatch.setattr(tuning, "target_settling_time", lambda arm, exp: 0.25)
+    monkeypatch.setattr(tuning, "step_response_figure",
+                        lambda arm, png, gains, ctrls, title=None: {c: (None, None, 0.5) for c in ctrls})
+    monkeypatch.setattr(tuning, "tune_gains", fake_tune)
+    args = argparse.Namespace(arm="7", controllers="velocity,pid", steps=3, out=str(tmp_path))
+    tuned = tuning.tune_cli(args)
+    out, err = capsys.readouterr()
+    lines = {ln.split()[0]: ln for ln in out.splitlines() if ln.split() and ln.split()[0] in ("velocity", "pid")}
+    assert lines["velocity"].split()[6] == "yes" and lines["pid"].split()[6] == "NO"
+    assert "warning: pid did not settle" in err and "velocity" not in err
+    assert set(json.loads((tmp_path / "tuned_gains.json").read_text())) == {"velocity", "pid"} == set(tuned)
