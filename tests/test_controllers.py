@@ -589,3 +589,8 @@ def test_make_environment_refuses_bad_goals_by_name():
         make_environment(EMPTY, good_p, good_q, buffer_size=0)
     env = jax.vmap(lambda p: make_environment(EMPTY, p, good_q))(jnp.stack([good_p, good_p]))
     assert env.goal_p.shape == (2, 3) and env.virtual_p.shape == (2, 20, 3)
+    # integer goals are taken in the default float type, a float32 goal stays float32
+    ints = make_environment(EMPTY, [0, 0, 1], [1, 0, 0, 0])
+    assert ints.goal_p.dtype == ints.goal_quat.dtype == ints.virtual_p.dtype == jnp.result_type(float)
+    f32 = make_environment(EMPTY, good_p.astype(jnp.float32), good_q.astype(jnp.float32))
+    assert f32.goal_p.dtype == f32.goal_quat.dtype == f32.virtual_p.dtype == jnp.float32

@@ -70,7 +70,7 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
     **Raises** ``ValueError`` naming the argument for a wrong shape or (where concrete) a
     non-finite goal or a quaternion that is not unit (a zero one turned orientation control off
     unnoticed, a longer one scaled its gain), or a ``buffer_size`` below 1."""
-    from ._math import check_count, check_shape_finite, concrete
+    from ._math import check_count, check_shape_finite, concrete, floating_dtype
 
     check_shape_finite("goal_p", goal_p, (3,))
     check_shape_finite("goal_quat", goal_quat, (4,))
@@ -79,8 +79,7 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
         raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q} (norm "
                          f"{float(np.linalg.norm(q)):.6g})")
     check_count("buffer_size", buffer_size, 1)
-    dtype = jnp.asarray(goal_p).dtype
-    dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)  # integer goals
+    dtype = floating_dtype(jnp.asarray(goal_p))  # integer goals: the default float
     return Environment(
         obstacles=obstacles,
         goal_p=jnp.asarray(goal_p, dtype),

@@ -31,7 +31,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
 from ._math import (as_float, as_float_or_none, check_count, check_positive, check_shape_finite, check_tolerances,
-                    resolve_tolerances, safe_norm)
+                    floating_dtype, resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
 
@@ -311,8 +311,7 @@ def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams
     obstacle sets (one ``jit(vmap)``). **Raises** ``ValueError`` for wrongly shaped or (where
     concrete) non-finite points."""
     x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
-    dtype = jnp.result_type(x0, goal_p)  # one float type: mixed precisions promoted, integers
-    dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)  # the default
+    dtype = floating_dtype(x0, goal_p)  # one float type: mixed precisions promoted, integers: the default
     x0, goal_p = x0.astype(dtype), goal_p.astype(dtype)
     if x0.ndim != 2 or x0.shape[1] != 3:
         raise ValueError(f"x0: expected shape (S, 3), got {tuple(x0.shape)}")

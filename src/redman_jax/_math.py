@@ -34,6 +34,7 @@ __all__ = [
     "as_float",
     "as_float_or_none",
     "is_floating_array",
+    "floating_dtype",
     "cast_floating",
 ]
 
@@ -192,6 +193,13 @@ def as_float_or_none(x):
     """:func:`as_float`, keeping ``None`` (a field whose default is resolved later, e.g. tolerances
     by the run's precision, :func:`resolve_tolerances`)."""
     return None if x is None else as_float(x)
+
+
+def floating_dtype(*arrays):
+    """The dtype ``arrays`` promote to if it is floating, else the default float dtype (integer
+    points or goals are computed in floats)."""
+    dtype = jnp.result_type(*arrays)
+    return dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
 
 
 def is_floating_array(x) -> bool:
