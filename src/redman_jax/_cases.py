@@ -987,6 +987,9 @@ def _build(case, seeds, arm, params, validate, max_retries, stats):
     than one per retry. Per seed the first candidate, in attempt order, that passes is accepted:
     the outcome (``seed_used``, scenario, and the ``stats`` counts, merged only up to the accepted
     attempt) equals trying the attempts one at a time; later attempts of the round are dropped.
+    The planned references themselves equal single-seed planning to rounding only (up to about
+    1e-13 m: the vmapped planner is compiled per batch size); a build always plans in the same
+    batches, so the same seeds give the same scenarios bit for bit.
     """
     case = _check_case(case)
     prm = _check_params(params)
@@ -1086,7 +1089,8 @@ def make_scenarios(case: str, seeds, arm: Arm, params: CaseParams | None = None,
     ``jit(vmap(rrt_reference))``; failed seeds are regenerated at ``seed + 1000`` and planned
     again. ``validate``, if given, maps a stacked batch (at most ``len(seeds)`` candidates) to
     bools. A retry round fills the batch with later attempts of the pending seeds; per seed the
-    first attempt that passes is kept, as if the attempts were tried one at a time.
+    first attempt that passes is kept, as if the attempts were tried one at a time (the RRT
+    references to rounding, see ``_build``).
     """
     seeds = list(seeds)
     if not seeds:
