@@ -989,7 +989,7 @@ def _build(case, seeds, arm, params, validate, max_retries, stats):
     attempt) equals trying the attempts one at a time; later attempts of the round are dropped.
     The planned references themselves equal single-seed planning to rounding only (up to about
     1e-13 m: the vmapped planner is compiled per batch size); a build always plans in the same
-    batches, so the same seeds give the same scenarios bit for bit.
+    batches, so the same list of seeds gives the same scenarios bit for bit.
     """
     case = _check_case(case)
     prm = _check_params(params)
