@@ -17,6 +17,7 @@ import redman_jax
 from redman_jax._cases import (
     AgricultureParams,
     CaseParams,
+    InspectionParams,
     SimpleParams,
     WarehouseParams,
     _arm_info,
@@ -379,6 +380,16 @@ def test_errors_name_the_field(arms):
         SimpleParams(circumradius=float("nan"))
     with pytest.raises(ValueError, match=r"CaseParams\.simple"):
         CaseParams(simple=AgricultureParams())
+    # a float count was accepted and failed deep inside the generator (range(3.0)); a start of
+    # two numbers failed in a NumPy broadcast, an empty scan row list with an IndexError
+    for make, match in [(lambda: AgricultureParams(n_trees=3.0), r"AgricultureParams\.n_trees: must be an int"),
+                        (lambda: CaseParams(max_draws=100.5), r"CaseParams\.max_draws: must be an int"),
+                        (lambda: WarehouseParams(capacity=320.0), r"WarehouseParams\.capacity: must be an int"),
+                        (lambda: CaseParams(sizing_start=(0.0, 1.2)), r"CaseParams\.sizing_start: must be 3 numbers"),
+                        (lambda: InspectionParams(scan_rows=()), r"InspectionParams\.scan_rows: must be one or more"),
+                        (lambda: AgricultureParams(root_jitter=(0.1, 0.2)), r"AgricultureParams\.root_jitter: must be a number")]:
+        with pytest.raises(ValueError, match=match):
+            make()
     with pytest.raises(ValueError, match=r"CaseParams\.rrt: expected an RRTParams"):
         CaseParams(rrt={"step": 0.1})  # was passed on to the planner unchecked
     with pytest.raises(ValueError, match="seeds"):

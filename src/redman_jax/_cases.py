@@ -104,24 +104,43 @@ _TOL = 1e-9  # [m] geometric rules hold up to round-off (exact 0.12 m slot clear
 # ----------------------------------------------------------------------------------------------
 
 
+def _annotated_shape(annotation: str):
+    """The shape a number field's annotation asks for: ``float`` ``()``, ``tuple[float, float]``
+    ``(2,)``, ``tuple[float, ...]`` ``None`` (one axis, at least one entry)."""
+    if annotation == "float":
+        return ()
+    inner = annotation[len("tuple["):-1].split(",")
+    return None if inner[-1].strip() == "..." else (len(inner),)
+
+
 def _validate_fields(obj) -> None:
-    """Host-side checks naming the field: finite numbers, ``lo <= hi`` ranges, signs, ints."""
+    """Host-side checks naming the field: ints where the annotation says ``int`` (a float count
+    failed deep inside the generator, ``range(3.0)``), finite numbers of the annotated shape,
+    ``lo <= hi`` ranges, signs."""
     name = type(obj).__name__
     for f in dataclasses.fields(obj):
         val = getattr(obj, f.name)
         if dataclasses.is_dataclass(val) or f.name == "rrt":
             continue
         label = f"{name}.{f.name}"
-        if isinstance(val, bool):
-            continue
-        if isinstance(val, (int, np.integer)) and not isinstance(val, bool):
+        annotation = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+        if annotation == "int":
             lo = 0 if f.name in obj._may_be_zero else 1
-            if val < lo:
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < lo:
                 raise ValueError(f"{label}: must be an int >= {lo}, got {val!r}")
             continue
-        arr = np.asarray(val, dtype=float) if not isinstance(val, str) else None
+        if isinstance(val, bool):
+            continue
+        try:
+            arr = np.asarray(val, dtype=float) if not isinstance(val, str) else None
+        except (TypeError, ValueError):
+            arr = None
         if arr is None or not np.all(np.isfinite(arr)):
             raise ValueError(f"{label}: must be finite numbers, got {val!r}")
+        want = _annotated_shape(annotation) if annotation.startswith(("float", "tuple[")) else arr.shape
+        if (arr.shape != want) if want is not None else (arr.ndim != 1 or arr.size == 0):
+            what = "one or more numbers" if want is None else ("a number" if want == () else f"{want[0]} numbers")
+            raise ValueError(f"{label}: must be {what}, got {val!r}")
         if f.name in obj._ranges:
             if arr.shape != (2,) or arr[0] > arr[1]:
                 raise ValueError(f"{label}: must be a range (lo, hi) with lo <= hi, got {val!r}")
