@@ -246,6 +246,22 @@ def test_bad_input_raises():
         ik_reference(ARM, ref, free_obstacles(), IKParams(), jnp.asarray(Q0).at[2].set(jnp.nan))
     with pytest.raises(ValueError, match="method"):
         IKParams(method="newton")
+    # a reference that cannot be run: ts = 0 made the whole trajectory NaN (read as an invalid
+    # scene, so silently reseeded), a zero quaternion with rot = 1 and 0 samples gave valid=True
+    quat_off = ref.quat.at[3].set(0.0)
+    for field, value, match in [("ts", jnp.asarray(0.0), "ts: expected a finite sample time > 0"),
+                                ("ts", jnp.asarray(jnp.nan), "ts: expected a finite sample time > 0"),
+                                ("n_samples", jnp.asarray(0), "n_samples: expected 1 to"),
+                                ("quat", quat_off, "quat: expected unit quaternions"),
+                                ("p", ref.p.at[2, 1].set(jnp.inf), "p: expected finite values"),
+                                ("rot", ref.rot.at[4].set(0.5), "rot: expected flags 0 or 1")]:
+        broken = eqx.tree_at(lambda r: getattr(r, field), ref, value)
+        with pytest.raises(ValueError, match=f"^Reference.{match}"):
+            ik_reference(ARM, broken, free_obstacles(), IKParams())
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), ref)  # a batch is checked whole
+    with pytest.raises(ValueError, match="^Reference.quat: expected unit quaternions"):
+        ik_reference(ARM, eqx.tree_at(lambda r: r.quat, batch, batch.quat.at[1, 3].set(0.0)),
+                     jax.tree.map(lambda x: jnp.stack([x, x]), free_obstacles()), IKParams())
     # a zero or NaN acceleration bound made every bound NaN and every candidate silently invalid
     for kw, field in [({"acc_limit": 0.0}, "acc_limit"), ({"acc_limit": float("nan")}, "acc_limit"),
                       ({"goal_tolerance": -0.1}, "goal_tolerance"), ({"w": -1e-4}, "w"),

@@ -580,6 +580,10 @@ def test_bad_initial_state_and_gains_raise_by_name():
         broken = eqx.tree_at(lambda s: getattr(s.reference, field), sc, jnp.asarray(value, getattr(ref, field).dtype))
         with pytest.raises(ValueError, match=f"^scenario.reference.{match}"):
             simulate(ARM, broken, CTRL, g)
+    # a zero goal quaternion on a sample with rot = 1 made the orientation error 0 there
+    broken = eqx.tree_at(lambda s: s.reference.quat, sc, ref.quat.at[2].set(0.0))
+    with pytest.raises(ValueError, match=r"^scenario.reference.quat: expected unit quaternions"):
+        simulate(ARM, broken, CTRL, g)
     with pytest.raises(ValueError, match="^points_per_sample: expected an int >= 1"):
         simulate_dense(ARM, sc, CTRL, g, points_per_sample=0)
 

@@ -76,7 +76,7 @@ from ._fields import DISTANCE_CLAMP, obstacle_potential_dr, points_sdf_and_norma
 from ._obstacles import ObstacleSet, obstacle_distances
 from ._qp import QPSettings, solve_qp
 from ._robot import Arm
-from ._scenario import Reference, Scenario
+from ._scenario import Reference, Scenario, check_reference_values
 
 __all__ = [
     "IKParams",
@@ -520,13 +520,17 @@ def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params:
 
     **Returns:** :class:`IKResult` (batched like the inputs).
 
-    **Raises:** ``ValueError`` naming the field for inconsistent shapes.
+    **Raises:** ``ValueError`` naming the field for inconsistent shapes and, where concrete, for
+    a reference that cannot be run (:func:`~redman_jax._scenario.check_reference_values`: sample
+    count, sample time, non-finite values, ``rot`` flags, quaternions that are not unit) or a
+    non-finite ``q0``.
     """
     params = IKParams() if params is None else params
     batched = reference.p.ndim == 3
     # shapes only (an eager x[0] would compile a slice per leaf shape)
     ref0 = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), reference) if batched else reference
     _check_reference(arm, ref0, q0)
+    check_reference_values(reference, "Reference")
     return _ik_jit(arm, reference, obstacles, params, q0, batched)
 
 

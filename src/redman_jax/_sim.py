@@ -111,7 +111,7 @@ from ._metrics import (
 from . import _host
 from ._obstacles import points_min_distance, used_bound, used_bound_jit, with_used
 from ._robot import Arm
-from ._scenario import Reference, Scenario
+from ._scenario import Reference, Scenario, check_reference_values
 
 __all__ = ["SimParams", "SimResult", "JointReference", "simulate", "simulate_batch", "simulate_dense",
            "joint_reference", "tolerances", "DEFAULT_TOLERANCES"]
@@ -937,20 +937,8 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=Non
     R = scenario.reference.p.shape[0] if batched else None
     for name, x in (("q0", q0), ("qd0", qd0)):
         check_initial_state(name, x, arm.n_dof, R)
-    _check_reference(scenario.reference)
+    check_reference_values(scenario.reference, "scenario.reference")
     _check_gains(controller, gains, R if batch_gains else None)
-
-
-def _check_reference(ref) -> None:
-    """Where concrete: ``1 <= n_samples <= capacity`` and a finite, positive ``ts`` (0 samples ran
-    as a run of NaN errors and no flag, more than the capacity reported rows that do not exist, and
-    ``ts <= 0`` integrated nothing, all with status 0)."""
-    n, ts = concrete(ref.n_samples), concrete(ref.ts)
-    if n is not None and (np.any(n < 1) or np.any(n > ref.capacity)):
-        raise ValueError(f"scenario.reference.n_samples: expected 1 to {ref.capacity} (the "
-                         f"reference's capacity), got {n}")
-    if ts is not None and not np.all(np.isfinite(ts) & (ts > 0)):
-        raise ValueError(f"scenario.reference.ts: expected a finite sample time > 0, got {ts}")
 
 
 def _check_gains(controller, gains, R) -> None:
