@@ -295,6 +295,12 @@ def test_assemble_reference_errors():
         assemble_reference([s2, s1], TS, capacity=300)
     with pytest.raises(ValueError, match="rot"):
         assemble_reference([s1], TS, capacity=300, rot=np.zeros(3))
+    # a NaN flag was latched into every later sample (orientation control silently off), 2 and -1 kept
+    for bad in (np.nan, 2.0, -1.0):
+        flags = np.zeros(len(s1.p))
+        flags[5] = bad
+        with pytest.raises(ValueError, match="rot: expected flags 0 or 1"):
+            assemble_reference([s1], TS, capacity=300, rot=flags)
     with pytest.raises(ValueError, match="ts"):
         assemble_reference([s1], -1.0, capacity=300)
 

@@ -460,7 +460,8 @@ def assemble_reference(segments, ts: float = 0.01, capacity: int | None = None, 
     * The final sample is at rest (``v = a = omega = omega_dot = 0``), and the padding up to
       ``capacity`` repeats it (``mask`` False there). ``capacity=None``: no padding.
 
-    Raises ``ValueError`` when the samples exceed ``capacity``, or ``rot`` has the wrong length.
+    Raises ``ValueError`` when the samples exceed ``capacity``, or ``rot`` has the wrong length or
+    a flag other than 0 or 1.
     """
     if not (np.isfinite(ts) and ts > 0):
         raise ValueError(f"ts: must be a positive finite sample time, got {ts!r}")
@@ -469,6 +470,8 @@ def assemble_reference(segments, ts: float = 0.01, capacity: int | None = None, 
     flags = seg.rot if rot is None else np.asarray(rot, float)
     if flags.shape != (n,):
         raise ValueError(f"rot: expected {n} per-sample flags, got shape {flags.shape}")
+    if not np.all((flags == 0.0) | (flags == 1.0)):  # a NaN was latched into every later sample
+        raise ValueError(f"rot: expected flags 0 or 1 (orientation control off / on), got {np.unique(flags)}")
     if capacity is None:
         capacity = n
     if not isinstance(capacity, (int, np.integer)) or capacity < 1:
