@@ -258,6 +258,8 @@ def test_bad_input_raises():
         broken = eqx.tree_at(lambda r: getattr(r, field), ref, value)
         with pytest.raises(ValueError, match=f"^Reference.{match}"):
             ik_reference(ARM, broken, free_obstacles(), IKParams())
+    with pytest.raises(ValueError, match=r"^seed: must be a non-negative int, got .*2\.5"):
+        validated_scenarios("warehouse", [2.5, 7.9], ARM, max_retries=0)  # was truncated to 2, 7
     batch = jax.tree.map(lambda x: jnp.stack([x, x]), ref)  # a batch is checked whole
     with pytest.raises(ValueError, match="^Reference.quat: expected unit quaternions"):
         ik_reference(ARM, eqx.tree_at(lambda r: r.quat, batch, batch.quat.at[1, 3].set(0.0)),

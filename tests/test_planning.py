@@ -394,6 +394,13 @@ def test_bad_parameters_raise():
         rrt_reference(key, obs, start, goal, QUAT, 0.2, 0.0, 100, PARAMS)
     with pytest.raises(ValueError, match="capacity"):
         rrt_reference(key, obs, start, goal, QUAT, 0.2, 0.01, 0, PARAMS)
+    with pytest.raises(ValueError, match="capacity: expected a positive int"):
+        rrt_reference(key, obs, start, goal, QUAT, 0.2, 0.01, 100.5, PARAMS)  # was 100 samples
+    for bad in (np.array([np.nan, 0.0, 0.0, 0.0]), np.zeros(4)):  # went into every sample
+        with pytest.raises(ValueError, match="goal_quat: expected a unit quaternion"):
+            rrt_reference(key, obs, start, goal, bad, 0.2, 0.01, 100, PARAMS)
+    with pytest.raises(ValueError, match=r"start: expected a 3-vector, got shape \(2, 3\)"):
+        plan_rrt(key, obs, np.zeros((2, 3)), goal, PARAMS)  # was a broadcasting error inside
     with pytest.raises(ValueError, match="goal_quat"):
         rrt_reference(key, obs, start, goal, QUAT[:3], 0.2, 0.01, 100, PARAMS)
     with pytest.raises(ValueError, match="batch"):

@@ -597,10 +597,10 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     within ``max_retries`` moves (if not, the last candidate comes back with ``valid = False``).
     ``stats`` (a dict), if given, receives the generator's rejection counts.
     """
-    from ._cases import _stack, make_scenarios
+    from ._cases import _check_seed, _stack, make_scenarios
 
     params = IKParams() if params is None else params
-    seeds = [int(s) for s in np.atleast_1d(np.asarray(seeds))]
+    seeds = [_check_seed(s) for s in np.atleast_1d(np.asarray(seeds))]  # int() truncated 2.5 to 2
     if not seeds:
         raise ValueError("validated_scenarios: seeds is empty")
     if max_retries < 0:

@@ -410,7 +410,7 @@ class _TreeState(NamedTuple):
 
 def _check_point(name, x):
     x_shape = np.shape(x)  # lists too (jnp.shape warns on them)
-    if x_shape[-1:] != (3,):
+    if x_shape != (3,):  # a (2, 3) start failed inside the planner with a broadcasting error
         raise ValueError(f"{name}: expected a 3-vector, got shape {x_shape}")
     v = concrete(x)
     if v is not None and not np.all(np.isfinite(v)):
@@ -788,12 +788,16 @@ def _hold_reference(p0, goal_p, goal_quat, rot_radius, ts, capacity, dtype):
 
 
 def _validate_reference_args(rot_radius, ts, goal_quat, capacity) -> int:
-    if int(capacity) < 1:
-        raise ValueError(f"capacity: expected a positive number of samples, got {capacity}")
+    # capacity sizes the reference: 100.5 was truncated to 100 samples without a word
+    if isinstance(capacity, bool) or not isinstance(capacity, (int, np.integer)) or capacity < 1:
+        raise ValueError(f"capacity: expected a positive int (number of samples), got {capacity!r}")
     check_positive("rot_radius", rot_radius, allow_zero=True)
     check_positive("ts", ts)
     if jnp.shape(goal_quat)[-1:] != (4,):
         raise ValueError(f"goal_quat: expected a 4-vector, got shape {jnp.shape(goal_quat)}")
+    q = concrete(goal_quat)  # a NaN or zero goal orientation went into every sample of the reference
+    if q is not None and not np.all(np.isfinite(q) & (np.abs(np.linalg.norm(q, axis=-1, keepdims=True) - 1) <= 1e-5)):
+        raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q}")
     return int(capacity)
 
 
