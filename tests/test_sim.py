@@ -588,6 +588,35 @@ def test_bad_initial_state_and_gains_raise_by_name():
         simulate_dense(ARM, sc, CTRL, g, points_per_sample=0)
 
 
+def test_bad_goal_precision_joint_reference_and_sim_params_raise_by_name():
+    """Each was accepted and failed deep inside the run (an AttributeError, a cond's dtype error,
+    a broadcasting or vmap size error) or ran silently wrong (a NaN goal read as "goal not
+    reached", a NaN joint reference as a divergence)."""
+    sc, jref = joint_motion_scenario(ARM, DQ_FREE, 0.2, 30)
+    g, jl = toy_gains("osc"), toy_gains("joint")
+    for kw, match in [(dict(field="plus"), "^SimParams.field: expected a FieldParams"),
+                      (dict(contact=None), "^SimParams.contact: expected a LimitContact")]:
+        with pytest.raises(ValueError, match=match):
+            SimParams(**kw)
+    for broken, match in [(eqx.tree_at(lambda s: s.goal_p, sc, sc.goal_p.at[0].set(jnp.nan)),
+                           "^scenario.goal_p: expected finite values"),
+                          (eqx.tree_at(lambda s: s.goal_quat, sc, jnp.zeros(4)),
+                           "^scenario.goal_quat: expected unit quaternions")]:
+        with pytest.raises(ValueError, match=match):
+            simulate(ARM, broken, CTRL, g)
+    f32 = redman_jax.cast_floating(sc, jnp.float32)
+    mixed = eqx.tree_at(lambda s: s.obstacles, f32, sc.obstacles)  # float64 obstacles, float32 run
+    with pytest.raises(ValueError, match="^scenario.obstacles: float64 arrays with a float32 scenario"):
+        simulate(redman_jax.cast_floating(ARM, jnp.float32), mixed, CTRL, redman_jax.cast_floating(g, jnp.float32))
+    q, qd, qdd = jref
+    with pytest.raises(ValueError, match=r"^ik.q: expected shape \(30, 7\)"):
+        simulate(ARM, sc, _NeedsJoints(), jl, ik=(q[:, :6], qd[:, :6], qdd[:, :6]))
+    with pytest.raises(ValueError, match="^ik.qdd: expected finite values"):
+        simulate(ARM, sc, _NeedsJoints(), jl, ik=(q, qd, qdd.at[3, 2].set(jnp.nan)))
+    with pytest.raises(ValueError, match=r"^ik.q: expected shape \(2, 30, 7\)"):  # not batched
+        simulate_batch(ARM, stack_scenarios([sc, sc]), _NeedsJoints(), jl, ik=jref)
+
+
 def test_batch_with_qd0_alone_starts_every_member_at_the_arms_q0():
     """``simulate_batch(qd0=...)`` without ``q0`` gave every member the whole ``(R, n)`` ``qd0``
     (a shape error in ``rnea``); each member now starts at ``arm.q0`` with its own ``qd0`` row, as

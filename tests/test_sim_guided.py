@@ -265,3 +265,19 @@ def test_what_happens_after_the_stop_does_not_count():
     before = outcome(hold // 2)  # blew up inside the hold
     assert bool(before.diverged) and not bool(before.metrics.success) and int(before.metrics.cause) == 3
     assert not bool(before.metrics.collided) and not bool(before.metrics.joint_limit)
+
+
+def test_sim_params_field_drives_the_controller_and_the_estimator():
+    """``SimParams.field`` went to the local-minima estimator only, while the controller's guidance
+    velocity kept ``gains.field``: one run followed two fields (final positions 0.18 m apart). It
+    is now the field of both: the run equals the one with that field in the gains."""
+    from redman_jax._fields import FieldParams
+
+    fp = FieldParams(a=0.05)
+    P = dataclasses.replace(PARAMS, guidance_samples=30)
+    via_params = simulate(ARM, SCEN, CTRL, GAINS, params=dataclasses.replace(P, field=fp))
+    via_gains = simulate(ARM, SCEN, CTRL, dataclasses.replace(GAINS, field=fp), params=P)
+    default = simulate(ARM, SCEN, CTRL, GAINS, params=P)
+    for x, y in ((via_params.q, via_gains.q), (via_params.estimates, via_gains.estimates)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert float(jnp.max(jnp.abs(via_params.q - default.q))) > 1e-3  # the field matters here

@@ -522,15 +522,15 @@ def ik_reference(arm: Arm, reference: Reference, obstacles: ObstacleSet, params:
 
     **Raises:** ``ValueError`` naming the field for inconsistent shapes and, where concrete, for
     a reference that cannot be run (:func:`~redman_jax._scenario.check_reference_values`: sample
-    count, sample time, non-finite values, ``rot`` flags, quaternions that are not unit) or a
-    non-finite ``q0``.
+    count, sample time, non-finite values (one reference; in a batch they are that member's
+    failure), ``rot`` flags, quaternions that are not unit) or a non-finite ``q0``.
     """
     params = IKParams() if params is None else params
     batched = reference.p.ndim == 3
     # shapes only (an eager x[0] would compile a slice per leaf shape)
     ref0 = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), reference) if batched else reference
     _check_reference(arm, ref0, q0)
-    check_reference_values(reference, "Reference")
+    check_reference_values(reference, "Reference", batch=batched)
     return _ik_jit(arm, reference, obstacles, params, q0, batched)
 
 

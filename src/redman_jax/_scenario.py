@@ -29,29 +29,34 @@ CASES: tuple[str, ...] = ("agriculture", "warehouse", "inspection", "welding", "
 _QUAT_NORM_TOL = 1e-5  # as make_environment's goal: a zero or 2x quaternion is refused, rounding is not
 
 
-def check_reference_values(ref, owner: str) -> None:
+def check_reference_values(ref, owner: str, batch: bool = False) -> None:
     """Where concrete (any leading batch axes), refuse a reference that cannot be run, naming
     ``owner.<field>``: ``1 <= n_samples <= capacity``; a finite sample time ``ts > 0``; finite
-    ``p``, ``v``, ``a``, ``quat``, ``omega``, ``omega_dot``; ``rot`` flags of 0 or 1 (the controllers
-    switch at 0.5: a NaN flag switched orientation control off unnoticed); unit quaternions on
-    the valid samples (a zero quaternion made the orientation error 0, a scaled one scaled its
-    gain). Before: 0 samples gave NaN errors, ``ts <= 0`` integrated nothing or made the IK NaN,
-    both with no error; a zero ``quat`` with ``rot = 1`` gave a "valid" IK that ignored orientation.
+    ``p``, ``v``, ``a``, ``quat``, ``omega``, ``omega_dot``, ``rot``; ``rot`` flags of 0 or 1 (the
+    controllers switch at 0.5: a NaN flag switched orientation control off unnoticed); unit
+    quaternions on the valid samples (a zero quaternion made the orientation error 0, a scaled one
+    scaled its gain). Before: 0 samples gave NaN errors, ``ts <= 0`` integrated nothing or made the
+    IK NaN, both with no error; a zero ``quat`` with ``rot = 1`` gave a "valid" IK that ignored
+    orientation.
+
+    ``batch=True`` (a batch of runs): a non-finite value is that member's own failure (flagged
+    in its result, its batch-mates intact), not an error; the finite values are checked as above.
     """
     n, ts = concrete(ref.n_samples), concrete(ref.ts)
     if n is not None and (np.any(n < 1) or np.any(n > ref.capacity)):
         raise ValueError(f"{owner}.n_samples: expected 1 to {ref.capacity} (the reference's capacity), got {n}")
     if ts is not None and not np.all(np.isfinite(ts) & (ts > 0)):
         raise ValueError(f"{owner}.ts: expected a finite sample time > 0, got {ts}")
-    for name in ("p", "v", "a", "quat", "omega", "omega_dot", "rot"):
-        check_finite(f"{owner}.{name}", getattr(ref, name))
+    if not batch:
+        for name in ("p", "v", "a", "quat", "omega", "omega_dot", "rot"):
+            check_finite(f"{owner}.{name}", getattr(ref, name))
     rot = concrete(ref.rot)
-    if rot is not None and not np.all((rot == 0) | (rot == 1)):
+    if rot is not None and not np.all((rot == 0) | (rot == 1) | np.isnan(rot)):
         raise ValueError(f"{owner}.rot: expected flags 0 or 1 (orientation control off / on), got "
                          f"{np.unique(rot)}")
     quat, mask = concrete(ref.quat), concrete(ref.mask)
     if quat is not None and mask is not None:
-        off = np.abs(np.linalg.norm(quat, axis=-1) - 1.0) > _QUAT_NORM_TOL
+        off = np.abs(np.linalg.norm(quat, axis=-1) - 1.0) > _QUAT_NORM_TOL  # False where NaN
         if np.any(off & mask):
             idx = tuple(int(i) for i in np.argwhere(off & mask)[0])
             raise ValueError(f"{owner}.quat: expected unit quaternions (w, x, y, z) on the valid samples, "

@@ -96,8 +96,8 @@ from ._control_types import AbstractController, ControlState, RefSample, make_en
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
 from ._math import (DEFAULT_TOLERANCES, as_float, as_float_or_none, cast_floating, check_count,
-                    check_initial_state, check_positive, check_tolerances, concrete, is_floating_array,
-                    resolve_tolerances)
+                    check_finite, check_initial_state, check_positive, check_tolerances,
+                    concrete, is_floating_array, resolve_tolerances)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -162,7 +162,10 @@ class SimParams(eqx.Module):
       ``compact``: :func:`simulate_batch` of a gradient-guided controller in horizon mode moves the
       last quarter of its members still stepping to a batch of just those (host-driven, outside any
       ``jit``; the same steps and results to rounding, see ``_simulate_guided_compacting``).
-    * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field (None: defaults).
+    * ``field``: :class:`~redman_jax._fields.FieldParams` of the guidance field of a gradient-guided
+      run, for both the controller's guidance velocity and the local-minima estimator (it replaces
+      the gains' own ``field``, which a gradient with respect to the gains then does not see);
+      None (default): the gains' ``field`` drives both.
     """
 
     rtol: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
@@ -190,6 +193,12 @@ class SimParams(eqx.Module):
     compact: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
+        from ._fields import FieldParams
+
+        if self.field is not None and not isinstance(self.field, FieldParams):
+            raise ValueError(f"SimParams.field: expected a FieldParams or None, got {type(self.field).__name__}")
+        if not isinstance(self.contact, LimitContact):
+            raise ValueError(f"SimParams.contact: expected a LimitContact, got {type(self.contact).__name__}")
         if self.slots_per_step is not None and (not isinstance(self.slots_per_step, int)
                                                 or self.slots_per_step < 1):
             raise ValueError(f"SimParams.slots_per_step: expected None (auto) or a positive int, "
@@ -937,8 +946,46 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=Non
     R = scenario.reference.p.shape[0] if batched else None
     for name, x in (("q0", q0), ("qd0", qd0)):
         check_initial_state(name, x, arm.n_dof, R)
-    check_reference_values(scenario.reference, "scenario.reference")
+    # one run: its values finite; a batch: a member's non-finite values are its own flagged failure
+    check_reference_values(scenario.reference, "scenario.reference", batch=batched)
+    if not batched:  # a NaN goal ran (make_environment's check is inside the jit) as "goal not reached"
+        check_finite("scenario.goal_p", scenario.goal_p)
+        check_finite("scenario.goal_quat", scenario.goal_quat)
+    gq = concrete(scenario.goal_quat)
+    if gq is not None and np.any(np.abs(np.linalg.norm(gq, axis=-1) - 1.0) > 1e-5):  # False where NaN
+        raise ValueError(f"scenario.goal_quat: expected unit quaternions (w, x, y, z), got {gq}")
     _check_gains(controller, gains, R if batch_gains else None)
+
+
+def _check_joint_reference(jref, n: int, N: int, R) -> None:
+    """The joint reference's shape, ``(N, n)`` (``(R, N, n)`` in a batch of ``R``: a wrong column
+    count failed inside the closed loop with a broadcasting error, an unbatched one in a batch
+    with "vmap got inconsistent sizes"); for one run, where concrete, finite values (a NaN ran as
+    a divergence). In a batch a member's non-finite reference (the IK of a scene that failed
+    validation) stays that member's flagged divergence and leaves the others intact."""
+    if jref is None:
+        return
+    shape = (N, n) if R is None else (R, N, n)
+    about = f" ({N} reference samples, {n}-DOF arm{'' if R is None else f', {R} runs'})"
+    for name in ("q", "qd", "qdd"):
+        x = getattr(jref, name)
+        if tuple(np.shape(x)) != shape:
+            raise ValueError(f"ik.{name}: expected shape {shape}{about}, got {tuple(np.shape(x))}")
+        if R is None:
+            check_finite(f"ik.{name}", x)
+
+
+def _with_sim_field(gains, params, batch_gains: bool, R):
+    """The gains with ``params.field`` as their guidance field where both exist (one field for the
+    controller and the estimator; a batch of gains gets it on every member)."""
+    from ._fields import FieldParams
+
+    if params.field is None or not isinstance(getattr(gains, "field", None), FieldParams):
+        return gains
+    field = params.field
+    if batch_gains:
+        field = jax.tree.map(lambda f, g: jnp.broadcast_to(jnp.asarray(f, g.dtype), g.shape), field, gains.field)
+    return eqx.tree_at(lambda g: g.field, gains, field)
 
 
 def _check_gains(controller, gains, R) -> None:
@@ -963,7 +1010,8 @@ def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
     the vector field and fail deep inside the solver). Weakly typed numbers (Python scalars) take
     the run's precision and pass."""
     dtype = jnp.dtype(scenario.reference.p.dtype)
-    for name, tree in (("arm", arm), ("gains", gains), ("ik", ik)):
+    for name, tree in (("arm", arm), ("gains", gains), ("ik", ik), ("scenario.obstacles", scenario.obstacles),
+                       ("scenario.goal_p", scenario.goal_p), ("scenario.goal_quat", scenario.goal_quat)):
         other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(tree)
                  if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
         if other:
@@ -1016,7 +1064,9 @@ def simulate(arm: Arm, scenario: Scenario, controller: AbstractController, gains
     params = SimParams() if params is None else params
     _check_inputs(arm, scenario, controller, ik, batched=False, q0=q0, qd0=qd0, gains=gains)
     params = _in_precision(arm, scenario, gains, ik, params)
+    gains = _with_sim_field(gains, params, False, None)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    _check_joint_reference(jref, arm.n_dof, scenario.reference.capacity, None)
     scenario = _with_layout(arm, scenario, params, 1)
     q0, qd0 = _as_state(q0, scenario), _as_state(qd0, scenario)
     return _simulate_jit(arm, scenario, controller, gains, jref, q0, qd0, params)
@@ -1189,8 +1239,10 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     _check_inputs(arm, scenarios, controller, ik, batched=True, q0=q0, qd0=qd0, gains=gains,
                   batch_gains=batch_gains)
     params = _in_precision(arm, scenarios, gains, ik, params)
-    jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
     R = int(scenarios.reference.p.shape[0])
+    gains = _with_sim_field(gains, params, batch_gains, R)
+    jref = None if ik is None else joint_reference(ik, scenarios.reference.capacity)
+    _check_joint_reference(jref, arm.n_dof, scenarios.reference.capacity, R)
     q0, qd0 = _as_state(q0, scenarios), _as_state(qd0, scenarios)
     if q0 is None and qd0 is not None:  # each member from the arm's q0 (qd0 takes q0's axis)
         q0 = jnp.broadcast_to(arm.q0.astype(qd0.dtype), (R, arm.n_dof))
@@ -1310,6 +1362,7 @@ def simulate_dense(arm, scenario, controller, gains, ik=None, params: SimParams 
         raise ValueError("controller: simulate_dense supports trajectory-tracking controllers only")
     check_count("points_per_sample", points_per_sample, 1)
     jref = None if ik is None else joint_reference(ik, scenario.reference.capacity)
+    _check_joint_reference(jref, arm.n_dof, scenario.reference.capacity, None)
     scenario = _with_layout(arm, scenario, params, 1)
     q0, qd0 = _as_state(q0, scenario), _as_state(qd0, scenario)
     return _simulate_dense_jit(arm, scenario, controller, gains, jref, q0, qd0, params, points_per_sample)
