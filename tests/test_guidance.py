@@ -176,6 +176,16 @@ def test_perfect_controller_in_float32_takes_float32_tolerances():
     assert np.all(np.asarray(r64.success)) and np.all(np.asarray(r32.success))
     assert not np.any(np.asarray(r32.failed)) and int(np.max(np.asarray(r32.n_short))) == 0
     assert np.all(np.asarray(r32.termination.final_err) < 0.10)
+    # with our default parameters (float64) the float32 batch failed inside diffrax, and a float32
+    # single run was promoted to float64: the parameters take the points' precision
+    r32d = perfect_controller_batch(*cast_floating((x0, xg, obs), jnp.float32))
+    np.testing.assert_array_equal(np.asarray(r32d.x), np.asarray(r32.x))
+    obs0 = jax.tree.map(lambda x: x[0], obs)
+    short = PerfectParams(n_samples=30, hold_samples=5)
+    one = perfect_controller(*cast_floating((x0[0], xg[0], obs0), jnp.float32), short)
+    assert one.x.dtype == jnp.float32
+    with pytest.raises(ValueError, match="^obs: float64 arrays with float32 points"):
+        perfect_controller(*cast_floating((x0[0], xg[0]), jnp.float32), obs0, short)
 
 
 def test_bad_input_raises():
@@ -227,6 +237,20 @@ def test_goal_field_minimum_without_obstacles_is_the_goal():
     goal = jnp.asarray([0.3, 0.1, 0.5])
     x, shift, _ = goal_field_minimum(goal, obs)
     assert float(shift) == 0.0
+    assert float(goal_field_minimum([0.3, 0.1, 0.5], obs)[1]) == 0.0  # a list goal (was an AttributeError)
+
+
+def test_goal_field_minimum_refuses_bad_input_by_name():
+    """A NaN goal came back as a converged minimum (shift and gradient 0), a negative max_step
+    stepped uphill, a negative n_iter was taken."""
+    obs = make_obstacles(capacities=(1, 1, 1))
+    goal = jnp.asarray([0.3, 0.1, 0.5])
+    for args, kw, match in [((goal.at[0].set(jnp.nan), obs), {}, "^goal_p: expected finite values"),
+                            ((goal[:2], obs), {}, r"^goal_p: expected shape \(3,\)"),
+                            ((goal, obs), dict(max_step=-0.02), "^max_step: expected a finite positive"),
+                            ((goal, obs), dict(n_iter=-1), "^n_iter: expected an int >= 0")]:
+        with pytest.raises(ValueError, match=match):
+            goal_field_minimum(*args, **kw)
 
 
 def test_bad_perfect_params_are_errors_naming_the_field():

@@ -30,8 +30,8 @@ import diffrax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
-from ._math import (as_float, as_float_or_none, check_count, check_positive, check_shape_finite, check_tolerances,
-                    floating_dtype, resolve_tolerances, safe_norm)
+from ._math import (as_float, as_float_or_none, cast_floating, check_count, check_positive, check_shape_finite,
+                    check_tolerances, floating_dtype, is_floating_array, resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
 
@@ -122,8 +122,17 @@ def goal_field_minimum(goal_p: Float[Array, "3"], obs: ObstacleSet, params: Fiel
 
     Returns ``(x_min, shift, grad_norm)``: the point, its distance to the goal [m] and the field
     gradient's norm there (about 0 when the descent converged).
+
+    Raises ``ValueError`` for a ``goal_p`` not of shape ``(3,)`` or (where concrete) not finite
+    (a NaN goal came back as a converged minimum, shift and gradient 0), ``n_iter < 0`` or a
+    ``max_step`` that is not positive (a negative one stepped uphill).
     """
     params = FieldParams() if params is None else params
+    goal_p = jnp.asarray(goal_p)
+    goal_p = goal_p.astype(floating_dtype(goal_p))
+    check_shape_finite("goal_p", goal_p, (3,))
+    check_count("n_iter", n_iter, 0)
+    check_positive("max_step", max_step)
     dtype = goal_p.dtype
     vp = jnp.zeros((1, 3), dtype)
     vm = jnp.zeros((1,), bool)
@@ -292,11 +301,25 @@ def perfect_controller(x0, goal_p, obs: ObstacleSet, params: PerfectParams | Non
     :func:`perfect_controller_batch`). **Raises** ``ValueError`` for wrongly shaped or (where
     concrete) non-finite points.
     """
-    params = PerfectParams() if params is None else params
-    dtype = jnp.result_type(float)  # the field's parameters are in the default float type
-    x0, goal_p = jnp.asarray(x0, dtype), jnp.asarray(goal_p, dtype)
+    x0, goal_p, params = _in_points_precision(x0, goal_p, obs, params)
     _check_points(x0, goal_p, (3,))
-    return _perfect_jit(x0, goal_p.astype(x0.dtype), obs, params)
+    return _perfect_jit(x0, goal_p, obs, params)
+
+
+def _in_points_precision(x0, goal_p, obs, params):
+    """``(x0, goal_p, params)`` in the points' floating precision (integer points: the default
+    float): our ``params`` are cast to it (its float64 defaults failed a float32 batch inside
+    diffrax, and promoted a float32 single run to float64); obstacles of another floating
+    precision are an error naming them, as in the simulator."""
+    params = PerfectParams() if params is None else params
+    x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
+    dtype = floating_dtype(x0, goal_p)  # one float type: mixed precisions promoted
+    other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(obs)
+             if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
+    if other:
+        raise ValueError(f"obs: {'/'.join(sorted(other))} arrays with {jnp.dtype(dtype).name} points; "
+                         f"cast them (or the points) to one precision")
+    return x0.astype(dtype), goal_p.astype(dtype), cast_floating(params, dtype)
 
 
 def _check_points(x0, goal_p, shape) -> None:
@@ -310,13 +333,11 @@ def perfect_controller_batch(x0, goal_p, obs: ObstacleSet, params: PerfectParams
     """:func:`perfect_controller` over a batch of scenes: ``x0``, ``goal_p`` ``(S, 3)`` and stacked
     obstacle sets (one ``jit(vmap)``). **Raises** ``ValueError`` for wrongly shaped or (where
     concrete) non-finite points."""
-    x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
-    dtype = floating_dtype(x0, goal_p)  # one float type: mixed precisions promoted, integers: the default
-    x0, goal_p = x0.astype(dtype), goal_p.astype(dtype)
+    x0, goal_p, params = _in_points_precision(x0, goal_p, obs, params)
     if x0.ndim != 2 or x0.shape[1] != 3:
         raise ValueError(f"x0: expected shape (S, 3), got {tuple(x0.shape)}")
     _check_points(x0, goal_p, tuple(x0.shape))
-    return _perfect_batch_jit(x0, goal_p, obs, PerfectParams() if params is None else params)
+    return _perfect_batch_jit(x0, goal_p, obs, params)
 
 
 @eqx.filter_jit
