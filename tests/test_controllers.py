@@ -594,3 +594,5 @@ def test_make_environment_refuses_bad_goals_by_name():
     assert ints.goal_p.dtype == ints.goal_quat.dtype == ints.virtual_p.dtype == jnp.result_type(float)
     f32 = make_environment(EMPTY, good_p.astype(jnp.float32), good_q.astype(jnp.float32))
     assert f32.goal_p.dtype == f32.goal_quat.dtype == f32.virtual_p.dtype == jnp.float32
+    listed = make_environment(EMPTY, good_p.astype(jnp.float32), [1.0, 0.0, 0.0, 0.0])  # was float64
+    assert listed.goal_p.dtype == listed.goal_quat.dtype == jnp.float32

@@ -70,7 +70,7 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
     **Raises** ``ValueError`` naming the argument for a wrong shape or (where concrete) a
     non-finite goal or a quaternion that is not unit (a zero one turned orientation control off
     unnoticed, a longer one scaled its gain), or a ``buffer_size`` below 1."""
-    from ._math import check_count, check_shape_finite, concrete, floating_dtype
+    from ._math import check_count, check_shape_finite, concrete, floating_dtype, is_floating_array
 
     check_shape_finite("goal_p", goal_p, (3,))
     check_shape_finite("goal_quat", goal_quat, (4,))
@@ -79,11 +79,14 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
         raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q} (norm "
                          f"{float(np.linalg.norm(q)):.6g})")
     check_count("buffer_size", buffer_size, 1)
-    dtype = floating_dtype(jnp.asarray(goal_p))  # integer goals: the default float
+    # one float type for the goal (integer goals: the default float); a goal_quat given as a list
+    # takes goal_p's (it promoted a float32 environment, and every command, to float64)
+    typed = [x for x in (goal_p, goal_quat) if is_floating_array(x)] or [jnp.asarray(goal_p)]
+    dtype = floating_dtype(*typed)
     return Environment(
         obstacles=obstacles,
         goal_p=jnp.asarray(goal_p, dtype),
-        goal_quat=jnp.asarray(goal_quat, jnp.result_type(jnp.asarray(goal_quat).dtype, dtype)),
+        goal_quat=jnp.asarray(goal_quat, dtype),
         virtual_p=jnp.zeros((buffer_size, 3), dtype),
         virtual_mask=jnp.zeros((buffer_size,), bool),
     )
