@@ -99,11 +99,20 @@ def test_pooled_vs_per_run():
     with pytest.raises(ValueError, match="pooling"):
         aggregate_errors(err, mask, ok, "median")
     assert float(failure_rate(ok)) == pytest.approx(1 / 3)
+    assert float(failure_rate(ok, valid=jnp.asarray([False, True, True]))) == pytest.approx(1 / 2)
+    assert np.isnan(float(failure_rate(ok, valid=jnp.zeros(3, bool))))  # no valid run: was 0 %
 
 
 def test_time_per_call_positive():
     t = time_per_call(lambda x: jnp.sin(x) @ x, jnp.ones(8), n_calls=20)
     assert 0.0 < t < 1.0
+    # 0 calls divided by zero, a negative count returned a negative time
+    for kw, match in [(dict(n_calls=0), "^n_calls: expected an int >= 1"),
+                      (dict(n_calls=-5), "^n_calls: expected an int >= 1"),
+                      (dict(n_calls=2.5), "^n_calls: expected an int >= 1"),
+                      (dict(warmup=-1), "^warmup: expected an int >= 0")]:
+        with pytest.raises(ValueError, match=match):
+            time_per_call(lambda x: x, jnp.ones(2), **kw)
 
 
 def test_wall_time_per_sample_divides_by_all_samples_of_a_batch(monkeypatch):

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._math import quat_error, safe_norm
+from ._math import check_count, quat_error, safe_norm
 
 __all__ = [
     "position_errors",
@@ -224,11 +224,12 @@ def aggregate_errors(err, mask, run_ok, pooling: str = "pooled"):
 
 
 def failure_rate(success: Bool[Array, " R"], valid: Bool[Array, " R"] | None = None):
-    """Failed / number of (valid) runs."""
+    """Failed / number of (valid) runs; NaN where there is no valid run (it read as 0 %, a
+    perfect score, as ``masked_mean`` of an empty mask is NaN)."""
     success = jnp.asarray(success)
     valid = jnp.ones_like(success) if valid is None else jnp.asarray(valid)
     n = jnp.sum(valid)
-    return jnp.sum(valid & ~success) / jnp.maximum(n, 1)
+    return jnp.where(n > 0, jnp.sum(valid & ~success) / jnp.maximum(n, 1), jnp.nan)
 
 
 # --------------------------------------------------------------------------------------------
@@ -244,7 +245,10 @@ def time_per_call(fn: Callable, *args, n_calls: int = 1000, warmup: int = 3) -> 
     """Mean wall time [s] of one call of ``jit(fn)(*args)`` over ``n_calls`` calls after warm-up
     (each call synchronised with ``block_until_ready``: the latency a sample-based controller sees).
     The jitted wrapper of ``fn`` is kept, so timing the same function again with arguments of the
-    same shapes does not compile again."""
+    same shapes does not compile again. ``n_calls >= 1``, ``warmup >= 0`` (ints; 0 calls divided
+    by zero, a negative count returned a negative time)."""
+    check_count("n_calls", n_calls, 1)
+    check_count("warmup", warmup, 0)
     f = _filter_jit_cached(fn)
     for _ in range(warmup):
         jax.block_until_ready(f(*args))
@@ -269,6 +273,7 @@ def wall_time_per_sample(fn: Callable, *args, n_samples, warmup: int = 1) -> flo
     """Wall time of one (already compiled after ``warmup`` calls) call of ``fn(*args)`` divided by
     the number of samples it produced (``n_samples``: one run's count, or a batch's per-run counts,
     which are summed): the IK and planning compute time per sample."""
+    check_count("warmup", warmup, 0)
     for _ in range(warmup):
         jax.block_until_ready(fn(*args))
     t0 = time.perf_counter()
