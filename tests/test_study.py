@@ -362,6 +362,24 @@ def test_changed_configuration_recomputes(monkeypatch, tmp_path):
     assert calls == [("run", "welding", "velocity"), ("run", "simple", "velocity")]
 
 
+def test_a_float32_sweep_recomputes_a_float64_folder(monkeypatch, tmp_path):
+    """Precision is part of the units' keys and of ``config.json``: a float32 sweep
+    (``REDMAN_JAX_X64=0``) resumed in a float64 folder reused its scenes and runs (other scenes,
+    other tolerances) and wrote them as its own table."""
+    from redman_jax import _study
+
+    calls = []
+    _fake_pipeline(monkeypatch, calls)
+    run_sweep(_config(tmp_path))
+    assert json.loads((tmp_path / "config.json").read_text())["precision"] == "float64"
+    calls.clear()
+    monkeypatch.setattr(_study, "_precision", lambda: "float32")
+    run_sweep(_config(tmp_path))
+    assert [c for c in calls if c[0] == "scen"] == [("scen", "welding"), ("scen", "simple")]
+    assert len([c for c in calls if c[0] == "run"]) == 3
+    assert json.loads((tmp_path / "config.json").read_text())["precision"] == "float32"
+
+
 def test_solver_choice_reaches_the_runs_and_keys_them_by_the_solver_used(monkeypatch, tmp_path):
     """``--solver``: each simulation unit gets ``SimParams(solver=...)``; the unit's key holds the
     solver it resolves to, so a folder computed with another solver recomputes exactly the runs

@@ -238,12 +238,27 @@ class SweepConfig:
         d.pop("figures")
         d.pop("jobs")
         d.pop("distributed")
+        d["precision"] = _precision()
         return d
 
 
+def _precision() -> str:
+    """The sweep's floating precision: ``"float64"``, or ``"float32"`` under ``REDMAN_JAX_X64=0``
+    (the workers inherit the variable, so they compute in the same one)."""
+    import jax
+
+    return "float64" if jax.config.jax_enable_x64 else "float32"
+
+
 def _scenario_key(cfg: SweepConfig, arm: str, case: str) -> str:
-    return config_hash({"arm": _arm_identity(arm), "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
-                        "max_retries": cfg.max_retries, "v": 1})
+    """The key of a build unit, which every simulation unit of its scenes includes. A float32 sweep
+    draws other scenes and integrates at other tolerances: its precision is in the key (a float32
+    sweep in a float64 folder reused the float64 units); float64's keys are kept as they were."""
+    key = {"arm": _arm_identity(arm), "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
+           "max_retries": cfg.max_retries, "v": 1}
+    if _precision() != "float64":
+        key["precision"] = _precision()
+    return config_hash(key)
 
 
 def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
