@@ -8,6 +8,7 @@ verdicts follow the data (a JS failure must turn R3 into "differs", swapped timi
 
 import json
 import math
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -444,3 +445,37 @@ def test_a_figure_with_prefetch_computes_in_a_background_thread(tmp_path, monkey
         assert _is_png(tmp_path / "figures" / spec.file), spec.file
     # the step-response figure of the study is one with a prefetch
     assert [s.file for s in HOOKS if s.prefetch] == ["fig3_6_step_responses.png"]  # (imported before the patch)
+
+
+class _StoredScenes(NamedTuple):
+    """A stand-in for a stored Scenario batch: only what ``_stored_scenario`` reads."""
+
+    seed: np.ndarray
+    valid: np.ndarray
+
+
+def test_figures_use_only_the_scenes_of_the_tables_sweep(tmp_path):
+    """A sweep with other seeds interrupted in a finished folder rewrites ``units/scen_*.pkl``
+    while ``runs.csv`` and ``config.json`` stay: the scene figures drew that other sweep's scene
+    (seed 5) for seeds 1, 2 or none. Only the unit whose key ``config.json`` gives is used, and a
+    seed it lacks is not replaced by another one."""
+    from redman_jax._report import _NotGenerated, _stored_scenario
+    from redman_jax._store import UnitStore
+    from redman_jax._study import scenario_key
+
+    synthetic_study(tmp_path)
+    cfg = json.loads((tmp_path / "config.json").read_text())
+    cfg["max_retries"] = 20
+    (tmp_path / "config.json").write_text(json.dumps(cfg))
+    store = UnitStore(tmp_path)
+    scenes = lambda seeds: {"scenarios": _StoredScenes(np.asarray(seeds), np.ones(len(seeds), bool)), "ik": None}
+    store.save("scen_9dof_simple", scenario_key("9", "simple", SEEDS, TS, 20), scenes(SEEDS))
+    d = load_study(tmp_path)
+    assert int(_stored_scenario(d, "9dof", "simple", 3)[1].seed) == 3
+    assert int(_stored_scenario(d, "9dof", "simple")[1].seed) == SEEDS[0]
+    with pytest.raises(_NotGenerated, match="seed 7 is not among"):
+        _stored_scenario(d, "9dof", "simple", 7)
+    store.save("scen_9dof_simple", scenario_key("9", "simple", (5,), TS, 20), scenes([5]))  # the other sweep
+    for seed in (None, 1):
+        with pytest.raises(_NotGenerated, match="another sweep's scenes"):
+            _stored_scenario(d, "9dof", "simple", seed)

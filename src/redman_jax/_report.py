@@ -1449,11 +1449,14 @@ def _arm_spec(d: StudyData, label: str) -> str:
 
 def _stored_scenario(d: StudyData, label: str, case: str, seed: int | None = None):
     """(arm, scenario, ik, index) of one stored scenario of (label, case); ``seed`` picks it
-    (default the first valid one)."""
+    (default the first valid one). Only the scenes of the table's sweep: the stored unit's key
+    must be the one ``config.json`` gives (a sweep with other seeds interrupted in the folder
+    leaves its own scenes there, which the figures drew beside the old table), and an asked-for
+    seed must be among them."""
     import jax
 
     from ._store import UnitStore
-    from ._study import arm_from_spec
+    from ._study import arm_from_spec, scenario_key
 
     if d.out is None:
         raise _NotGenerated("no results folder")
@@ -1461,18 +1464,28 @@ def _stored_scenario(d: StudyData, label: str, case: str, seed: int | None = Non
     name = f"scen_{label}_{case}"
     if not store.path(name).is_file():
         raise _NotGenerated(f"no stored scenarios units/{name}.pkl")
+    spec, cfg = _arm_spec(d, label), d.config
+    try:
+        key = scenario_key(spec, case, cfg["seeds"], cfg["ts"], cfg["max_retries"],
+                           cfg.get("precision", "float64"))
+    except (KeyError, OSError, ValueError) as e:
+        raise _NotGenerated(f"cannot tell which scenes made the table (config.json: {e!r})") from None
+    if not store.has(name, key):
+        raise _NotGenerated(f"units/{name}.pkl holds another sweep's scenes, not those of runs.csv")
     payload = store.load(name)
     scen = payload["scenarios"]
     seeds = np.asarray(scen.seed).astype(int).ravel()
     valid = np.asarray(getattr(scen, "valid", np.ones_like(seeds, bool))).astype(bool).ravel()
-    if seed is not None and seed in seeds:
+    if seed is not None:
+        if seed not in seeds:
+            raise _NotGenerated(f"seed {seed} is not among the stored scenes of units/{name}.pkl")
         i = int(np.nonzero(seeds == seed)[0][0])
     else:
         i = int(np.argmax(valid)) if valid.any() else 0
     take = lambda x: x[i]  # noqa: E731
     sc = jax.tree.map(take, scen)
     ik = jax.tree.map(take, payload["ik"]) if payload.get("ik") is not None else None
-    return arm_from_spec(_arm_spec(d, label)), sc, ik, i
+    return arm_from_spec(spec), sc, ik, i
 
 
 def _hook_scenarios(d: StudyData, path: Path):

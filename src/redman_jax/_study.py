@@ -251,13 +251,19 @@ def _precision() -> str:
 
 
 def _scenario_key(cfg: SweepConfig, arm: str, case: str) -> str:
-    """The key of a build unit, which every simulation unit of its scenes includes. A float32 sweep
-    draws other scenes and integrates at other tolerances: its precision is in the key (a float32
-    sweep in a float64 folder reused the float64 units); float64's keys are kept as they were."""
-    key = {"arm": _arm_identity(arm), "case": case, "seeds": cfg.seeds, "ts": cfg.ts,
-           "max_retries": cfg.max_retries, "v": 1}
-    if _precision() != "float64":
-        key["precision"] = _precision()
+    """The key of a build unit, which every simulation unit of its scenes includes."""
+    return scenario_key(arm, case, cfg.seeds, cfg.ts, cfg.max_retries, _precision())
+
+
+def scenario_key(arm: str, case: str, seeds, ts, max_retries, precision: str = "float64") -> str:
+    """The key of the build unit of ``arm`` (its spec) and ``case`` in a sweep of these settings
+    (also rebuilt from a folder's ``config.json`` by the report). A float32 sweep draws other
+    scenes and integrates at other tolerances: its precision is in the key (a float32 sweep in a
+    float64 folder reused the float64 units); float64's keys are kept as they were."""
+    key = {"arm": _arm_identity(arm), "case": case, "seeds": list(seeds), "ts": ts,
+           "max_retries": max_retries, "v": 1}
+    if precision != "float64":
+        key["precision"] = precision
     return config_hash(key)
 
 
