@@ -354,6 +354,9 @@ def test_torque_bound_decides_the_stop_and_the_returned_iterate():
     assert int(_best_iterate(hist, 0.40, "settling", 0.02)) == 1
     hist["torque_ratio"] = np.array([3.0, 1.8, 1.5])  # none within: the smallest excess
     assert int(_best_iterate(hist, 0.40, "settling", 0.02)) == 2
+    # no iterate settled (each at the horizon): a tie, the start is kept (what tune's warning says)
+    unsettled = dict(hist, settled=np.zeros(3, bool), settling_time=np.full(3, 1.0), torque_ratio=np.ones(3))
+    assert int(_best_iterate(unsettled, 0.40, "settling")) == 0
 
 
 def test_experiment_start_reaches_the_simulation():
@@ -415,5 +418,5 @@ def test_tune_cli_says_which_controllers_did_not_settle(monkeypatch, tmp_path, c
     out, err = capsys.readouterr()
     lines = {ln.split()[0]: ln for ln in out.splitlines() if ln.split() and ln.split()[0] in ("velocity", "pid")}
     assert lines["velocity"].split()[6] == "yes" and lines["pid"].split()[6] == "NO"
-    assert "warning: pid did not settle" in err and "velocity" not in err
+    assert "warning: pid did not settle" in err and "keeps their starting gains" in err and "velocity" not in err
     assert set(json.loads((tmp_path / "tuned_gains.json").read_text())) == {"velocity", "pid"} == set(tuned)

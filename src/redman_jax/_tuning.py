@@ -1124,6 +1124,7 @@ def tune_cli(args) -> dict:
     print(f"wrote {out / 'tuned_gains.json'}, {out / 'fig3_6_before.png'}, {out / 'fig3_6_after.png'}")
     unsettled = [r[0] for r in rows if not r[7]]
     if unsettled:  # e.g. PID without gravity compensation: its step never settles, the gradient vanishes
-        print(f"warning: {', '.join(unsettled)} did not settle within the experiment; their gains in "
-              f"tuned_gains.json are the last iterate, not a tuned result", file=sys.stderr)
+        # with no iterate settled every iterate scores the same (_best_iterate): the start is kept
+        print(f"warning: {', '.join(unsettled)} did not settle within the experiment in any iterate; "
+              f"tuned_gains.json keeps their starting gains, not a tuned result", file=sys.stderr)
     return tuned
