@@ -85,6 +85,9 @@ def test_sweep_configuration_is_checked_before_any_work(tmp_path):
                         ({"gains": {"velocity": {"kp": "abc"}}}, "VelocityGains.kp: expected a number"),
                         ({"gains": {"velocity": {"kp": None}}}, "VelocityGains.kp: expected a number"),
                         ({"gains": {"velocity": {"kp": float("nan")}}}, "VelocityGains.kp: expected finite"),
+                        ({"gains": {"velocity": {"kp": True}}}, "VelocityGains.kp: expected a number"),
+                        # a retry count no seed can use was reported as a (negative) bound on seeds
+                        ({"max_retries": 3_000_000}, r"max_retries: must be 0 to 2147483"),
                         # a case none of the controllers runs on: its scenarios built for nothing
                         ({"cases": ("welding", "simple"), "controllers": ("gradient",)},
                          "cases: welding runs none of the controllers gradient"),

@@ -131,6 +131,8 @@ def make_gains(controller, overrides: dict | None):
             raise ValueError(f"gains: {type(gains).__name__} has no field {name!r} (fields: {fields})")
         old = getattr(gains, name)
         where = f"gains: {type(gains).__name__}.{name}"
+        if isinstance(value, bool) or np.asarray(value).dtype == bool:  # JSON true read as a gain of 1
+            raise ValueError(f"{where}: expected a number, got {value!r}")
         try:
             new = jnp.asarray(value, dtype=jnp.asarray(old).dtype)
         except (TypeError, ValueError):

@@ -163,8 +163,9 @@ class SweepConfig:
                 raise ValueError(f"controllers: unknown controller {c!r}; choose from {sorted(CONTROLLERS)}")
         if not self.seeds or any(int(s) < 0 for s in self.seeds):
             raise ValueError(f"seeds: need non-negative integers, got {self.seeds}")
-        if self.max_retries < 0:
-            raise ValueError(f"max_retries: must be >= 0, got {self.max_retries}")
+        if self.max_retries < 0 or 1000 * self.max_retries > SEED_MAX:  # not even seed 0 could retry
+            raise ValueError(f"max_retries: must be 0 to {SEED_MAX // 1000} (the retries seed + 1000 k "
+                             f"must stay below 2**31), got {self.max_retries}")
         top = SEED_MAX - 1000 * self.max_retries  # the retries are seed + 1000 k, k <= max_retries
         if max(int(s) for s in self.seeds) > top:
             raise ValueError(f"seeds: at most {top} with max_retries={self.max_retries} (the retries "
