@@ -22,6 +22,21 @@ def ablation_config(args, controllers, allowed_cases):
                        jobs=_jobs(args.jobs))
 
 
+def run_main(main, argv=None) -> int:
+    """``main(argv)`` with a bad option or configuration reported as ``redman-jax sweep`` reports
+    it (one ``error:`` line, exit status 2) instead of a traceback."""
+    import os
+    import sys
+
+    from redman_jax._cli import CLIError
+
+    try:
+        return main(argv)
+    except (CLIError, ValueError) as e:
+        print(f"{os.path.basename(sys.argv[0])}: error: {e}", file=sys.stderr)
+        return 2
+
+
 def add_jobs_option(ap) -> None:
     """``--jobs`` as in ``redman-jax sweep``. An ablation passes its ``register`` to the workers
     (``run_sweep(cfg, _worker_init=register)``), so they know its controller variants."""

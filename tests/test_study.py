@@ -790,3 +790,16 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
     before = (os.sched_getaffinity(0), os.environ.get("XLA_FLAGS"))
     prepare_sweep_process("1")
     assert (os.sched_getaffinity(0), os.environ.get("XLA_FLAGS")) == before
+
+
+@pytest.mark.parametrize("script, args, message", [
+    ("thesis_study.py", ["--seeds", "x"], "--seeds: cannot parse 'x'"),
+    ("ablation_jac_scaling.py", ["--cases", "kitchen"], "--cases: unknown value(s) ['kitchen']"),
+    ("ablation_obstacle_form.py", ["--cases", "welding"], "--cases: unknown value(s) ['welding']")])
+def test_sweep_scripts_report_bad_options_in_one_line(script, args, message, tmp_path):
+    """As ``redman-jax sweep``: an ``error:`` line and exit status 2 (they printed a traceback)."""
+    path = Path(__file__).resolve().parents[1] / "sweeps" / script
+    done = subprocess.run([sys.executable, str(path), *args, "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"{script}: error: {message}" in done.stderr and "Traceback" not in done.stderr
