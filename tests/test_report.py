@@ -300,6 +300,14 @@ def test_pooled_errors_and_headline_table(tmp_path):
         (T_CTRL["gradient"] + 1e-4) * np.mean([300, 300, 300, 600]), rel=1e-12)
 
 
+def test_a_table_without_the_runs_columns_is_refused_by_name(tmp_path):
+    """A runs.csv that is not a sweep's (no arm / case / controller column) stopped ``plot`` with a
+    KeyError from the report's process."""
+    (tmp_path / "runs.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match=r"not a runs table of a sweep, no column\(s\) \['arm', 'case'"):
+        load_study(tmp_path)
+
+
 def test_missing_traces_and_columns_do_not_crash(tmp_path):
     synthetic_study(tmp_path, traces=False)
     text = make_report(tmp_path, hooks=False).read_text()

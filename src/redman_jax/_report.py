@@ -360,7 +360,14 @@ def load_study(out) -> StudyData:
             config = json.loads((out / "config.json").read_text())
         except (OSError, json.JSONDecodeError):
             config = {}
-    return StudyData(load_runs(out), out, config)
+    rows = load_runs(out)
+    missing = [c for c in _REQUIRED_COLUMNS if rows and c not in rows[0]]
+    if missing:  # a KeyError deep in the report (in its worker process) otherwise
+        raise ValueError(f"{str(out / 'runs.csv')!r}: not a runs table of a sweep, no column(s) {missing}")
+    return StudyData(rows, out, config)
+
+
+_REQUIRED_COLUMNS = ("arm", "case", "controller")  # indexed directly; the rest may be missing
 
 
 # ------------------------------------------------------------------------------------------------
