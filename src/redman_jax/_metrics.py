@@ -8,7 +8,7 @@ on a whole batch. Conventions (SPEC section 10):
   index ``k`` of the saved arrays is already aligned with reference sample ``k``).
 * **Orientation error** ``|e_o| = |vec(Q_d (x) Q^-1)| = sin(phi / 2)`` (E19, unclipped), counted only
   on samples with ``rot = 1``.
-* **Failure**: obstacle collision or final position error > 0.10 m (joint-limit contact is logged,
+* **Failure**: obstacle collision or final position error of 0.10 m or more (joint-limit contact is logged,
   not a failure). Gradient-guided runs: success once ``|p - x_g| < 0.10`` held for 1 s
   (``hold_samples = 100`` sample ends), otherwise the final error at the 6 s stop decides (U26).
 * **Pooled vs per-run** aggregation of the errors over the runs of one (case, model, controller):
