@@ -281,3 +281,10 @@ def test_sim_params_field_drives_the_controller_and_the_estimator():
     for x, y in ((via_params.q, via_gains.q), (via_params.estimates, via_gains.estimates)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert float(jnp.max(jnp.abs(via_params.q - default.q))) > 1e-3  # the field matters here
+    # a batch of gains gets it on every member, also where its static form is not the gains'
+    fp2 = FieldParams(a=0.05, form="plus")
+    G = jax.tree.map(lambda x: jnp.stack([x, x]), GAINS)
+    batch = simulate_batch(ARM, stack_scenarios([SCEN, SCEN]), CTRL, G, batch_gains=True,
+                           params=dataclasses.replace(P, field=fp2))
+    single = simulate(ARM, SCEN, CTRL, dataclasses.replace(GAINS, field=fp2), params=P)
+    np.testing.assert_allclose(np.asarray(batch.q[1]), np.asarray(single.q), rtol=0, atol=1e-12)

@@ -982,9 +982,9 @@ def _with_sim_field(gains, params, batch_gains: bool, R):
 
     if params.field is None or not isinstance(getattr(gains, "field", None), FieldParams):
         return gains
-    field = params.field
-    if batch_gains:
-        field = jax.tree.map(lambda f, g: jnp.broadcast_to(jnp.asarray(f, g.dtype), g.shape), field, gains.field)
+    field = params.field  # in the run's precision already (_in_precision)
+    if batch_gains:  # its own structure: its static choices (form, ...) may differ from the gains'
+        field = jax.tree.map(lambda f: jnp.broadcast_to(f, (R,) + jnp.shape(f)), field)
     return eqx.tree_at(lambda g: g.field, gains, field)
 
 
