@@ -338,6 +338,19 @@ def test_a_nan_member_leaves_the_batchs_gradient_finite():
     np.testing.assert_allclose(float(v1), float(v0) / 2, rtol=1e-12)
     np.testing.assert_allclose(float(g1), float(g0) / 2, rtol=1e-9)
 
+    # the same through the run's metrics: the poisoned member's NaN errors (NaN - p_d) had a NaN
+    # partial in the norm behind their where, and its zero cotangent times NaN was NaN for all
+    @jax.jit
+    def metric_loss(kp, scen):
+        r = simulate_batch(ARM, scen, CTRL, toy_gains("osc", kp=jnp.stack([kp, 1000.0, 10.0])), ik=J)
+        m = r.metrics
+        return m.mean_pos_err[0] + m.final_pos_err[0]
+
+    gm0 = jax.grad(metric_loss)(250.0, batch)
+    gm1 = jax.grad(metric_loss)(250.0, bad)
+    assert np.isfinite(float(gm0)) and float(gm0) != 0.0
+    np.testing.assert_allclose(float(gm1), float(gm0), rtol=1e-9)
+
 
 def test_batch_equals_single_runs_and_nan_is_isolated():
     pairs, scs, jrefs = free_batch(3, 4)

@@ -60,8 +60,11 @@ HOLD_TIME = 1.0  # [s] gradient-guided: the goal must be held this long (thesis 
 
 def _norm(x):
     """Norm along the last axis with a zero gradient at ``x = 0`` (:func:`safe_norm`) that keeps a
-    NaN: a non-finite pose (a run whose solve stopped) gives a NaN error, never an error of 0."""
-    return jnp.where(jnp.isnan(jnp.sum(x, axis=-1)), jnp.nan, safe_norm(x, axis=-1))
+    NaN: a non-finite pose (a run whose solve stopped) gives a NaN error, never an error of 0.
+    Double ``where``: the norm is taken of 0 there, so its zero cotangent stays 0 (the NaN partial
+    of the norm of NaN made the shared gains' gradient of a batch NaN for every member)."""
+    bad = jnp.isnan(jnp.sum(x, axis=-1))
+    return jnp.where(bad, jnp.nan, safe_norm(jnp.where(bad[..., None], 0.0, x), axis=-1))
 
 
 def position_errors(p: Float[Array, "N 3"], p_d: Float[Array, "N 3"]) -> Float[Array, " N"]:

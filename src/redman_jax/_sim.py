@@ -812,8 +812,9 @@ def _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params) 
     ori_err = orientation_errors(quat, ref.quat)
     last = ref.n_samples - 1
     diverged = _diverged(ys, status)
-    final_err = jnp.linalg.norm(p[last] - scenario.goal_p)
-    final_err = jnp.where(jnp.isfinite(final_err), final_err, jnp.inf)
+    d_final = p[last] - scenario.goal_p
+    ok_final = jnp.all(jnp.isfinite(d_final))  # double where: no NaN partial behind the inf
+    final_err = jnp.where(ok_final, jnp.linalg.norm(jnp.where(ok_final, d_final, 0.0)), jnp.inf)
     flags = _final_flags(ys.f, jnp.arange(N) < ref.n_samples)
     metrics = run_metrics(pos_err, ori_err, ref.rot, mask, final_err, flags[0], flags[1],
                           diverged, params.goal_radius)
