@@ -189,6 +189,15 @@ def test_settings_change_without_recompile():
     n0 = f._cache_size()
     f(P, c, A, l, h, lb, ub, QPSettings(eps_abs=jnp.asarray(1e-10), eps_rel=jnp.asarray(1e-10)))
     assert f._cache_size() == n0
+    # called eagerly (equinox.filter_jit inside), Python floats too: they were static leaves, and
+    # every new value compiled the QP (and an IK around it) anew
+    from redman_jax._qp import _solve_qp
+
+    solve_qp(P, c, A, l, h, lb, ub, QPSettings(eps_abs=1e-8, eps_rel=1e-8))
+    n1 = _solve_qp._cached._cache_size()
+    solve_qp(P, c, A, l, h, lb, ub, QPSettings(eps_abs=1e-7, eps_rel=1e-7))
+    solve_qp(P, c, A, l, h, lb, ub, QPSettings(eps_abs=jnp.asarray(1e-6), eps_rel=jnp.asarray(1e-6)))
+    assert _solve_qp._cached._cache_size() == n1
 
 
 def test_far_bound_does_not_activate_a_nearly_active_row():

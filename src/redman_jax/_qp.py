@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._math import check_count, check_finite, check_positive, concrete
+from ._math import as_float_or_none, check_count, check_finite, check_positive, concrete
 
 __all__ = ["QPSettings", "QPSolution", "solve_qp", "solve_box_qp", "qp_residuals"]
 
@@ -69,8 +69,10 @@ class QPSettings(eqx.Module):
     * gap:    ``s^T z / m <= eps_abs + eps_rel |1/2 x^T P x + c^T x|``.
     """
 
-    eps_abs: Float[Array, ""] | None = None
-    eps_rel: Float[Array, ""] | None = None
+    # arrays (as_float): a Python float was a static leaf, and every new value recompiled the QP
+    # and the whole IK around it
+    eps_abs: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
+    eps_rel: Float[Array, ""] | None = eqx.field(default=None, converter=as_float_or_none)
     max_iter: int = eqx.field(static=True, default=40)
     step_fraction: float = eqx.field(static=True, default=0.99)
     polish: bool = eqx.field(static=True, default=True)
