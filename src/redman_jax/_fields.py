@@ -155,7 +155,7 @@ def _clamped_radial(s, a, D, eps, form):
 @_clamped_radial.defjvp
 def _clamped_radial_jvp(form, primals, tangents):
     s, a, D, eps = primals
-    ds, da, dD, _ = tangents
+    ds, da, dD, deps = tangents
     r = jnp.maximum(s, eps)
     sgn = -1.0 if form == "minus" else 1.0
     inside = s <= D
@@ -163,7 +163,10 @@ def _clamped_radial_jvp(form, primals, tangents):
     # dV/da = V/a ; dV/dD = -sgn a / (D^2 r^2) (the range only enters through the 1/D term)
     dv_da = jnp.where(inside, (1.0 / r + sgn / D) / r**2, 0.0)
     dv_dD = jnp.where(inside, -sgn * a / (D**2 * r**2), 0.0)
-    tangent = _radial_slope(s, a, D, eps, form) * ds + dv_da * da + dv_dD * dD
+    slope = _radial_slope(s, a, D, eps, form)  # V_o'(max(s, eps)) within D
+    # where the clamp holds (s < eps) the value is V_o(eps): dV/deps = V_o'(eps) (it was left 0)
+    dv_deps = jnp.where(s < eps, slope, 0.0)
+    tangent = slope * ds + dv_da * da + dv_dD * dD + dv_deps * deps
     return v, tangent
 
 
