@@ -152,10 +152,16 @@ def _clamped_radial(s, a, D, eps, form):
     return _radial_value(s, a, D, eps, form)
 
 
-@_clamped_radial.defjvp
 def _clamped_radial_jvp(form, primals, tangents):
+    from jax.custom_derivatives import SymbolicZero
+
     s, a, D, eps = primals
     ds, da, dD, deps = tangents
+    # the clamp's term only where its tangent is not a symbolic zero (it is one unless the clamp
+    # itself is differentiated): the others are instantiated as before the term existed, so the
+    # programs that do not differentiate the clamp (the simulator's) are unchanged, bit for bit
+    zero = lambda t, x: jnp.zeros(jnp.shape(x), jnp.result_type(x)) if isinstance(t, SymbolicZero) else t  # noqa: E731
+    ds, da, dD = zero(ds, s), zero(da, a), zero(dD, D)
     r = jnp.maximum(s, eps)
     sgn = -1.0 if form == "minus" else 1.0
     inside = s <= D
@@ -164,10 +170,14 @@ def _clamped_radial_jvp(form, primals, tangents):
     dv_da = jnp.where(inside, (1.0 / r + sgn / D) / r**2, 0.0)
     dv_dD = jnp.where(inside, -sgn * a / (D**2 * r**2), 0.0)
     slope = _radial_slope(s, a, D, eps, form)  # V_o'(max(s, eps)) within D
-    # where the clamp holds (s < eps) the value is V_o(eps): dV/deps = V_o'(eps) (it was left 0)
-    dv_deps = jnp.where(s < eps, slope, 0.0)
-    tangent = slope * ds + dv_da * da + dv_dD * dD + dv_deps * deps
+    tangent = slope * ds + dv_da * da + dv_dD * dD
+    if not isinstance(deps, SymbolicZero):
+        # where the clamp holds (s < eps) the value is V_o(eps): dV/deps = V_o'(eps) (it was left 0)
+        tangent = tangent + jnp.where(s < eps, slope, 0.0) * deps
     return v, tangent
+
+
+_clamped_radial.defjvp(_clamped_radial_jvp, symbolic_zeros=True)
 
 
 # ----------------------------------------------------------------------------------------------

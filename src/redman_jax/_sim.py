@@ -101,6 +101,7 @@ from ._math import (DEFAULT_TOLERANCES, as_float, as_float_or_none, cast_floatin
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
+    _norm_forward,
     goal_errors,
     guidance_termination,
     orientation_errors,
@@ -692,7 +693,7 @@ def _guided_stepper_fns(arm, controller, gains, scenario, env0, fparams, params,
         steps = c["steps"] + jnp.stack([1, keep.astype(jnp.int32), (~keep).astype(jnp.int32)])
         # the stop rule (guidance_termination): consecutive sample ends within the goal radius
         p_end = kinematics(arm, y.q).ee[None, :3, 3]
-        inside = position_errors(p_end, scenario.goal_p[None])[0] < params.goal_radius
+        inside = _norm_forward(p_end - scenario.goal_p[None])[0] < params.goal_radius  # no gradient
         hold = jnp.where(at_end, jnp.where(inside, c["hold"] + 1, 0), c["hold"])
         return dict(k=k + at_end.astype(jnp.int32), t=t, tnext=tnext, y=y, sstate=sstate,
                     cstate=cstate, made_jump=made_jump, buf=buf, rot=rot, ys=ys, est=est,
