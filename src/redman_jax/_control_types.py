@@ -20,7 +20,6 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._obstacles import ObstacleSet
@@ -70,14 +69,11 @@ def make_environment(obstacles: ObstacleSet, goal_p, goal_quat, buffer_size: int
     **Raises** ``ValueError`` naming the argument for a wrong shape or (where concrete) a
     non-finite goal or a quaternion that is not unit (a zero one turned orientation control off
     unnoticed, a longer one scaled its gain), or a ``buffer_size`` below 1."""
-    from ._math import check_count, check_shape_finite, concrete, floating_dtype, is_floating_array
+    from ._math import check_count, check_shape_finite, check_unit_quaternions, floating_dtype, is_floating_array
 
     check_shape_finite("goal_p", goal_p, (3,))
     check_shape_finite("goal_quat", goal_quat, (4,))
-    q = concrete(goal_quat)
-    if q is not None and abs(float(np.linalg.norm(q)) - 1.0) > 1e-5:  # zero: orientation off; 2x: gain 2x
-        raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q} (norm "
-                         f"{float(np.linalg.norm(q)):.6g})")
+    check_unit_quaternions("goal_quat", goal_quat)
     check_count("buffer_size", buffer_size, 1)
     # one float type for the goal (integer goals: the default float); a goal_quat given as a list
     # takes goal_p's (it promoted a float32 environment, and every command, to float64)

@@ -31,7 +31,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._fields import FieldParams, guidance_velocity, total_gradient, total_hessian
 from ._math import (as_float, as_float_or_none, cast_floating, check_count, check_positive, check_shape_finite,
-                    check_tolerances, floating_dtype, is_floating_array, resolve_tolerances, safe_norm)
+                    check_same_precision, check_tolerances, floating_dtype, resolve_tolerances, safe_norm)
 from ._metrics import GuidanceTermination, goal_errors, guidance_termination, path_length
 from ._obstacles import ObstacleSet
 
@@ -314,11 +314,7 @@ def _in_points_precision(x0, goal_p, obs, params):
     params = PerfectParams() if params is None else params
     x0, goal_p = jnp.asarray(x0), jnp.asarray(goal_p)
     dtype = floating_dtype(x0, goal_p)  # one float type: mixed precisions promoted
-    other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(obs)
-             if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
-    if other:
-        raise ValueError(f"obs: {'/'.join(sorted(other))} arrays with {jnp.dtype(dtype).name} points; "
-                         f"cast them (or the points) to one precision")
+    check_same_precision("obs", obs, dtype, f"{jnp.dtype(dtype).name} points")
     return x0.astype(dtype), goal_p.astype(dtype), cast_floating(params, dtype)
 
 

@@ -269,6 +269,43 @@ def check_finite(name: str, x) -> None:
         raise ValueError(f"{name}: expected finite values, got {a}")
 
 
+QUAT_NORM_TOL = 1e-5  # a zero or scaled quaternion is refused, rounding of a unit one is not
+
+
+def check_unit_quaternions(name: str, q, mask=None, plural: bool | None = None, allow_nan: bool = True) -> None:
+    """Raise ``ValueError`` naming ``name`` if a concrete quaternion ``(w, x, y, z)`` (the last axis;
+    any leading axes, only the rows where ``mask`` is True) has a norm off 1 by more than
+    :data:`QUAT_NORM_TOL`: a zero one turns orientation control off unnoticed, a longer one scales
+    its gain. Rows holding a NaN pass (finiteness is the caller's check: in a batch a NaN member is
+    that member's flagged failure) unless ``allow_nan=False``. The message speaks of one quaternion for a single one (of
+    several with ``plural=True``: an argument that may be a batch)."""
+    v = concrete(q)
+    m = None if mask is None else concrete(mask)
+    if v is None or (mask is not None and m is None):
+        return
+    norm = np.linalg.norm(v, axis=-1)
+    off = ~(np.abs(norm - 1.0) <= QUAT_NORM_TOL) if not allow_nan else np.abs(norm - 1.0) > QUAT_NORM_TOL
+    if m is not None:
+        off = off & m
+    if not np.any(off):
+        return
+    idx = tuple(int(i) for i in np.argwhere(off)[0])
+    where = f" at {idx}" if idx else ""
+    what = "unit quaternions" if (v.ndim > 1 if plural is None else plural) else "a unit quaternion"
+    raise ValueError(f"{name}: expected {what} (w, x, y, z), got {v[idx]}{where} (norm {float(norm[idx]):.6g})")
+
+
+def check_same_precision(name: str, tree, dtype, run: str) -> None:
+    """Raise ``ValueError`` naming ``name`` if ``tree`` holds strongly typed floating arrays of
+    another dtype than the run's ``dtype`` (mixed, they would promote the computation and fail deep
+    inside it); ``run`` says what the run's precision follows, e.g. ``"a float32 scenario"``."""
+    other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(tree)
+             if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
+    if other:
+        raise ValueError(f"{name}: {'/'.join(sorted(other))} arrays with {run}; cast them (or the "
+                         f"{run.split()[-1]}) to one precision")
+
+
 def check_positive(name: str, x, allow_zero: bool = False, allow_inf: bool = False) -> None:
     """Raise ``ValueError`` naming ``name`` unless concrete ``x`` is finite and positive
     (non-negative with ``allow_zero``; ``+inf`` also passes with ``allow_inf``)."""

@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ._math import check_positive, concrete, safe_norm
+from ._math import check_positive, check_unit_quaternions, concrete, safe_norm
 from ._obstacles import ObstacleSet, min_distance
 from ._scenario import Reference
 
@@ -795,9 +795,8 @@ def _validate_reference_args(rot_radius, ts, goal_quat, capacity) -> int:
     check_positive("ts", ts)
     if jnp.shape(goal_quat)[-1:] != (4,):
         raise ValueError(f"goal_quat: expected a 4-vector, got shape {jnp.shape(goal_quat)}")
-    q = concrete(goal_quat)  # a NaN or zero goal orientation went into every sample of the reference
-    if q is not None and not np.all(np.isfinite(q) & (np.abs(np.linalg.norm(q, axis=-1, keepdims=True) - 1) <= 1e-5)):
-        raise ValueError(f"goal_quat: expected a unit quaternion (w, x, y, z), got {q}")
+    # a NaN or zero goal orientation went into every sample of the reference
+    check_unit_quaternions("goal_quat", goal_quat, allow_nan=False)
     return int(capacity)
 
 

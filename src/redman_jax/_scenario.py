@@ -19,14 +19,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._host import host_array, put
-from ._math import check_finite, concrete
+from ._math import check_finite, check_unit_quaternions, concrete
 from ._obstacles import ObstacleSet
 
 __all__ = ["Reference", "Scenario", "CASES", "stack_scenarios", "reference_sample"]
 
 CASES: tuple[str, ...] = ("agriculture", "warehouse", "inspection", "welding", "simple")
-
-_QUAT_NORM_TOL = 1e-5  # as make_environment's goal: a zero or 2x quaternion is refused, rounding is not
 
 
 def check_reference_values(ref, owner: str, batch: bool = False) -> None:
@@ -54,13 +52,7 @@ def check_reference_values(ref, owner: str, batch: bool = False) -> None:
     if rot is not None and not np.all((rot == 0) | (rot == 1) | np.isnan(rot)):
         raise ValueError(f"{owner}.rot: expected flags 0 or 1 (orientation control off / on), got "
                          f"{np.unique(rot)}")
-    quat, mask = concrete(ref.quat), concrete(ref.mask)
-    if quat is not None and mask is not None:
-        off = np.abs(np.linalg.norm(quat, axis=-1) - 1.0) > _QUAT_NORM_TOL  # False where NaN
-        if np.any(off & mask):
-            idx = tuple(int(i) for i in np.argwhere(off & mask)[0])
-            raise ValueError(f"{owner}.quat: expected unit quaternions (w, x, y, z) on the valid samples, "
-                             f"got {quat[idx]} at sample {idx} (norm {np.linalg.norm(quat[idx]):.6g})")
+    check_unit_quaternions(f"{owner}.quat", ref.quat, ref.mask)  # on the valid samples
 
 
 class Reference(eqx.Module):

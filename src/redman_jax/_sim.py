@@ -96,8 +96,8 @@ from ._control_types import AbstractController, ControlState, RefSample, make_en
 from ._dynamics import LimitContact, forward_dynamics
 from ._kinematics import kinematics, poi_link_index, poi_positions_from
 from ._math import (DEFAULT_TOLERANCES, as_float, as_float_or_none, cast_floating, check_count,
-                    check_finite, check_initial_state, check_positive, check_tolerances,
-                    concrete, is_floating_array, resolve_tolerances)
+                    check_finite, check_initial_state, check_positive, check_same_precision, check_tolerances,
+                    check_unit_quaternions, concrete, resolve_tolerances)
 from ._math import rot_to_quat
 from ._metrics import (
     RunMetrics,
@@ -953,9 +953,7 @@ def _check_inputs(arm, scenario, controller, ik, batched: bool, q0=None, qd0=Non
     if not batched:  # a NaN goal ran (make_environment's check is inside the jit) as "goal not reached"
         check_finite("scenario.goal_p", scenario.goal_p)
         check_finite("scenario.goal_quat", scenario.goal_quat)
-    gq = concrete(scenario.goal_quat)
-    if gq is not None and np.any(np.abs(np.linalg.norm(gq, axis=-1) - 1.0) > 1e-5):  # False where NaN
-        raise ValueError(f"scenario.goal_quat: expected unit quaternions (w, x, y, z), got {gq}")
+    check_unit_quaternions("scenario.goal_quat", scenario.goal_quat, plural=True)
     _check_gains(controller, gains, R if batch_gains else None)
 
 
@@ -1014,11 +1012,7 @@ def _in_precision(arm, scenario, gains, ik, params: SimParams) -> SimParams:
     dtype = jnp.dtype(scenario.reference.p.dtype)
     for name, tree in (("arm", arm), ("gains", gains), ("ik", ik), ("scenario.obstacles", scenario.obstacles),
                        ("scenario.goal_p", scenario.goal_p), ("scenario.goal_quat", scenario.goal_quat)):
-        other = {jnp.dtype(x.dtype).name for x in jax.tree.leaves(tree)
-                 if is_floating_array(x) and not getattr(x, "weak_type", False) and x.dtype != dtype}
-        if other:
-            raise ValueError(f"{name}: {'/'.join(sorted(other))} arrays with a {dtype.name} scenario; "
-                             f"cast them (or the scenario) to one precision")
+        check_same_precision(name, tree, dtype, f"a {dtype.name} scenario")
     if params.rtol is None or params.atol is None:  # arguments of the compiled run, not constants
         params = dataclasses.replace(params, **dict(zip(("rtol", "atol"), tolerances(params, dtype))))
     return cast_floating(params, dtype)
