@@ -20,6 +20,7 @@ import pytest
 import redman_jax._pipeline as pipe
 from redman_jax._cli import main, parse_int_list
 from redman_jax._store import UnitStore, atomic_write_text, json_ready
+from redman_jax._scenario import CASES
 from redman_jax._study import SweepConfig, load_runs, run_sweep
 
 
@@ -130,18 +131,25 @@ def test_guided_horizon_and_hold_are_six_and_one_seconds_at_any_sample_time():
 
 
 def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
-    """The small cases of a sweep share padded shapes (one compilation), so a case's shapes, and
-    its results to rounding, depend on the other cases in the sweep: the key says which."""
+    """The cases of a sweep share padded shapes (one compilation), so a case's shapes, and its
+    results to rounding, depend on the other cases in the sweep: the key says which."""
     from redman_jax._study import _run_key
 
     alone = SweepConfig(cases=("simple",), controllers=("velocity",))
     shared = SweepConfig(cases=("simple", "inspection"), controllers=("velocity",))
     assert pipe.study_shapes(("simple",))["simple"] != pipe.study_shapes(("simple", "inspection"))["simple"]
     assert _run_key(alone, "9", "simple", "velocity") != _run_key(shared, "9", "simple", "velocity")
-    # warehouse keeps its own shapes whatever else runs: its key does not move
+    # a tracking controller's cases all share one shape, the warehouse's box slots included;
+    # the gradient-guided runs keep the warehouse's own whatever else runs: its key does not move
+    every = pipe.study_shapes(CASES, every_case=True)
+    assert len(set(every.values())) == 1 and every["inspection"][1][1] == every["warehouse"][1][1] >= 32
     w = SweepConfig(cases=("warehouse",), controllers=("velocity",))
-    w2 = SweepConfig(cases=("warehouse", "simple"), controllers=("velocity",))
-    assert _run_key(w, "9", "warehouse", "velocity") == _run_key(w2, "9", "warehouse", "velocity")
+    w2 = SweepConfig(cases=("warehouse", "inspection"), controllers=("velocity",))
+    assert _run_key(w, "9", "warehouse", "velocity") != _run_key(w2, "9", "warehouse", "velocity")
+    w = SweepConfig(cases=("warehouse",), controllers=("gradient",))
+    w2 = SweepConfig(cases=("warehouse", "simple"), controllers=("gradient",))
+    assert _run_key(w, "9", "warehouse", "gradient") == _run_key(w2, "9", "warehouse", "gradient")
+    assert pipe.study_shapes(("warehouse", "simple"))["warehouse"] != pipe.study_shapes(("warehouse", "simple"))["simple"]
 
 
 def test_table_without_parquet_support_removes_an_old_parquet(monkeypatch, tmp_path):

@@ -166,39 +166,53 @@ def _sample_inputs(arm, scen, controller, gains):
     return state, rs, env
 
 
-def study_shapes(cases, ts: float = 0.01) -> dict:
+def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
     """``{case: (N, (spheres, boxes, cylinders))}``: the shapes each case is simulated at, from
-    the generators' fixed capacities. Cases whose obstacle families all hold fewer than 32 slots
-    share one shape, the largest reference and obstacle capacities among them, so that one
-    compilation per arm and controller serves all of them (:func:`run_controller`); a case with a
-    larger family (warehouse: 146 box slots) keeps its own, since padding the others to it would
-    cost them run time (measured: 9-DOF inspection, velocity OSC, 2.5 s against 4.0 s)."""
+    the generators' fixed capacities.
+
+    ``every_case=True`` (the study's tracking controllers): one shape for all of ``cases``, the
+    largest reference and obstacle capacities among them, so that one compilation per arm and
+    controller serves every case (:func:`run_controller`, which pads them with
+    ``switch_layout``: a case with a few boxes padded to the warehouse's 146 box slots folds its
+    own slots one per step, :class:`~redman_jax.ObstacleSet`, and its runs are those of its own
+    shapes bit for bit). 9-DOF acceleration OSC, the five cases, 20 seeds, one process: 149.2 ->
+    129.6 s, the warehouse's own compilation (21 s) saved and its run 23 -> 28 s (reference
+    padded from 320 to 2,000 samples, compacted box slots from 97 back to 146).
+
+    ``every_case=False`` (the gradient-guided controller): cases whose obstacle families all hold
+    fewer than 32 slots share one shape, the largest capacities among them; a case with a larger
+    family (warehouse) keeps its own: the guidance field and estimator evaluate every slot at the
+    end effector, so padding the others to the warehouse's boxes would cost them run time (8-DOF
+    simple at (4, 97, 21): vector field 205 against 120 us at batch 20)."""
     from ._cases import CaseParams, obstacle_capacities
 
     P = CaseParams(ts=ts)
     own = {c: (int(P.case(c).capacity), tuple(obstacle_capacities(c, P))) for c in cases}
-    small = [c for c in cases if max(own[c][1]) < _SHARED_MAX_SLOTS]
-    if small:
-        N = max(own[c][0] for c in small)
-        caps = tuple(max(own[c][1][i] for c in small) for i in range(3))
-        own.update({c: (N, caps) for c in small})
+    shared = [c for c in cases if every_case or max(own[c][1]) < _SHARED_MAX_SLOTS]
+    if shared:
+        N = max(own[c][0] for c in shared)
+        caps = tuple(max(own[c][1][i] for c in shared) for i in range(3))
+        own.update({c: (N, caps) for c in shared})
     return own
 
 
 _SHARED_MAX_SLOTS = 32
 
 
-def pad_case(scen, ik, shapes):
+def pad_case(scen, ik, shapes, switch_layout: bool = False):
     """Scenarios (batched) and IK results (an ``IKResult`` or ``(q, qd, qdd)``) padded to ``shapes = (N, caps)``: reference and joint
     reference rows past the capacity are invalid samples (``mask`` False, the last row repeated;
     the simulator freezes the loop there), obstacle slots are masked. The scene's static case name
-    becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation."""
+    becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation.
+    ``switch_layout``: the padded obstacles' :attr:`~redman_jax.ObstacleSet.switch_layout`."""
+    from ._obstacles import with_switch_layout
     from ._scenario import pad_rows, pad_scenario
 
     N, caps = shapes
     N = max(int(N), scen.reference.capacity)
     caps = tuple(max(a, b) for a, b in zip(caps, scen.obstacles.capacities))
     scen = pad_scenario(scen, N, caps)
+    scen = eqx.tree_at(lambda s: s.obstacles, scen, with_switch_layout(scen.obstacles, bool(switch_layout)))
     q, qd, qdd = (put(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
     ik = (pad_rows(q, N, 1), pad_rows(qd, N + qd.shape[1] - q.shape[1], 1),
           pad_rows(qdd, N + qdd.shape[1] - q.shape[1], 1))
@@ -210,10 +224,10 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table.
 
     ``shapes``: ``(N, caps)``, this case's entry of :func:`study_shapes`; the case is simulated
-    padded to it (:func:`pad_case`), so one compilation serves the cases of an arm and controller
-    that share it (in one process).
-    The rows and traces are the same as without (to rounding: the padded obstacle slots change the
-    grouping of the sum over slots)."""
+    padded to it (:func:`pad_case`, with ``switch_layout`` for the tracking controllers), so one
+    compilation serves the cases of an arm and controller that share it (in one process).
+    The rows and traces are the same as without (to rounding: a padded grouped family, such as
+    the warehouse's boxes, changes how its sum over slots is grouped)."""
     from ._controllers import CONTROLLERS
     from ._metrics import controller_time_per_sample
     from ._sim import SimParams, simulate_batch
@@ -226,16 +240,19 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     ik = to_device(scen_payload["ik"])
     N0 = scen.reference.capacity
     if shapes is not None and tuple(shapes[1]) == scen_payload["scenarios"].obstacles.capacities:
-        # Obstacles stay compacted where the case keeps its own shapes (warehouse). The small cases
-        # share theirs, the guided runs too: their guidance field and estimator evaluate every
-        # slot at the end-effector, padded ones included, which costs run time (8-DOF simple,
-        # compacted (4, 1, 1) -> shared (4, 5, 21): vector field 91 -> 120 us at batch 20), but
-        # much less than a compilation (9-DOF simple in the study: unit 48.2 -> 7.3 s, its run
-        # 6.5 -> 6.7 s). Padded to the warehouse's box slots they would cost more (8-DOF simple at
-        # (4, 97, 21): 205 us), so the warehouse keeps its own.
+        # Obstacles stay compacted where the case keeps its own shapes (the warehouse's guided
+        # runs, study_shapes). The small cases share theirs, the guided runs too: their guidance
+        # field and estimator evaluate every slot at the end-effector, padded ones included, which
+        # costs run time (8-DOF simple, compacted (4, 1, 1) -> shared (4, 5, 21): vector field
+        # 91 -> 120 us at batch 20), but much less than a compilation (9-DOF simple in the study:
+        # unit 48.2 -> 7.3 s, its run 6.5 -> 6.7 s).
         shapes = (shapes[0], scen.obstacles.capacities)
     if shapes is not None:
-        scen_sim, ik_sim = pad_case(scen, ik, shapes)
+        # the tracking controllers' cases share the warehouse's box slots (study_shapes): the
+        # others fold their few boxes one slot per step (ObstacleSet.switch_layout). Not the
+        # guided runs: they keep the warehouse apart, and the switch's conditional would change
+        # how XLA fuses the warehouse's grouped pass, and so its rounding.
+        scen_sim, ik_sim = pad_case(scen, ik, shapes, switch_layout=not controller.uses_guidance)
     else:
         scen_sim, ik_sim = scen, (ik.q, ik.qd, ik.qdd)
     params = SimParams() if sim_params is None else sim_params

@@ -270,12 +270,15 @@ def scenario_key(arm: str, case: str, seeds, ts, max_retries, precision: str = "
 
 def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
     """The shapes ``(N, (spheres, boxes, cylinders))`` a simulation unit pads its case to: shared
-    with the other small cases of the sweep that run ``ctrl`` (:func:`~redman_jax._pipeline.study_shapes`),
-    so they depend on which cases the sweep holds."""
+    with the other cases of the sweep that run ``ctrl``, all of them for a tracking controller,
+    the small ones for the gradient-guided one (:func:`~redman_jax._pipeline.study_shapes`), so
+    they depend on which cases the sweep holds."""
     from . import _pipeline as pipe
+    from ._controllers import CONTROLLERS
 
     cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
-    return pipe.study_shapes(cases, cfg.ts)[case]
+    every = not CONTROLLERS[ctrl]().uses_guidance
+    return pipe.study_shapes(cases, cfg.ts, every_case=every)[case]
 
 
 # SPEC section 9: a gradient-guided run ends 6 s after its start or after 1 s held at the goal
