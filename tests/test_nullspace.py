@@ -650,51 +650,6 @@ def test_bad_slots_per_step_raises():
         SimParams(slots_per_step=0)
 
 
-@pytest.mark.parametrize("spp", [1, 45])
-def test_switch_layout_folds_few_used_slots_as_their_own_shapes(rng, spp):
-    """A scene of a few obstacles per family padded to capacities it shares with a large scene
-    (the study's tracking runs: the warehouse's 146 box slots, ``_pipeline.study_shapes``), with
-    ``ObstacleSet.switch_layout``: its passes fold the same slots in the same order as those of its
-    own shapes, so the policy gradients, their forward derivative along the points (the original
-    velocity OSC's policy rate), their reverse-mode gradient and the distances agree to rounding
-    (XLA fuses the conditionals' bodies apart: 1 ulp in a few elements), whether the padded family
-    is laid out in groups (``spp = 45``, the study's batch of 20) or not. A scene whose bound
-    reaches 32 takes the grouped layout and gives what it gives without the switch."""
-    from redman_jax._obstacles import (points_min_distance, used_bound, with_slots_per_step,
-                                       with_switch_layout, with_used)
-
-    X = jnp.asarray(rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.7], (36, 3)))
-    V = jnp.asarray(rng.normal(size=(36, 3)))
-
-    def passes(o):
-        g = lambda x: obstacle_gradients(o, x, 0.05, 0.75)
-        rate = jax.jvp(g, (X,), (V,))[1]
-        back = jax.grad(lambda x: jnp.sum(g(x) * V))(X)
-        return g(X), rate, back, points_min_distance(o, X)
-
-    run = jax.jit(passes)
-
-    def layout(obs, caps=None, switch=False):
-        o = with_slots_per_step(obs if caps is None else rj.pad_obstacles(obs, caps), spp)
-        return with_used(with_switch_layout(o, switch), used_bound(o))
-
-    small = _many_obstacles(rng, 6, 5)  # 6 slots per family, 5 in use, interleaved with padding
-    own = run(layout(small))
-    shared = layout(small, (8, 146, 21), switch=True)
-    assert shared.switch_layout and shared.boxes.capacity == 146
-    close = lambda b, a: np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-14,
-                                                    atol=1e-14 * float(np.abs(a).max()))
-    for a, b in zip(own, run(shared)):
-        close(b, a)
-    assert np.abs(np.asarray(own[0])).max() > 0  # the obstacles act on the points
-    cut = with_used(shared, jnp.asarray([2, 2, 2], jnp.int32))  # a bound that cuts used slots:
-    assert np.abs(np.asarray(run(cut)[0]) - np.asarray(own[0])).max() > 1e-6  # the skip is real
-    large = _many_obstacles(rng, 40, 33)
-    plain = run(layout(large, (40, 146, 40)))
-    for a, b in zip(plain, run(layout(large, (40, 146, 40), switch=True))):
-        close(b, a)
-
-
 @_default_emitters_only
 @pytest.mark.parametrize("spp", [1, 16])
 def test_used_bound_skips_only_padding(rng, spp):

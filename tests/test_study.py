@@ -139,16 +139,17 @@ def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
     shared = SweepConfig(cases=("simple", "inspection"), controllers=("velocity",))
     assert pipe.study_shapes(("simple",))["simple"] != pipe.study_shapes(("simple", "inspection"))["simple"]
     assert _run_key(alone, "9", "simple", "velocity") != _run_key(shared, "9", "simple", "velocity")
-    # a tracking controller's cases all share one shape, the warehouse's box slots included;
-    # the gradient-guided runs keep the warehouse's own whatever else runs: its key does not move
+    # the joint-space controller's cases all share one shape, the warehouse's box slots included;
+    # the others keep the warehouse's own whatever else runs: its key does not move
     every = pipe.study_shapes(CASES, every_case=True)
     assert len(set(every.values())) == 1 and every["inspection"][1][1] == every["warehouse"][1][1] >= 32
-    w = SweepConfig(cases=("warehouse",), controllers=("velocity",))
-    w2 = SweepConfig(cases=("warehouse", "inspection"), controllers=("velocity",))
-    assert _run_key(w, "9", "warehouse", "velocity") != _run_key(w2, "9", "warehouse", "velocity")
-    w = SweepConfig(cases=("warehouse",), controllers=("gradient",))
-    w2 = SweepConfig(cases=("warehouse", "simple"), controllers=("gradient",))
-    assert _run_key(w, "9", "warehouse", "gradient") == _run_key(w2, "9", "warehouse", "gradient")
+    j = SweepConfig(cases=("warehouse",), controllers=("joint_space",))
+    j2 = SweepConfig(cases=("warehouse", "inspection"), controllers=("joint_space",))
+    assert _run_key(j, "9", "warehouse", "joint_space") != _run_key(j2, "9", "warehouse", "joint_space")
+    for ctrl in ("velocity", "gradient"):
+        w = SweepConfig(cases=("warehouse",), controllers=(ctrl,))
+        w2 = SweepConfig(cases=("warehouse", "simple"), controllers=(ctrl,))
+        assert _run_key(w, "9", "warehouse", ctrl) == _run_key(w2, "9", "warehouse", ctrl)
     assert pipe.study_shapes(("warehouse", "simple"))["warehouse"] != pipe.study_shapes(("warehouse", "simple"))["simple"]
 
 

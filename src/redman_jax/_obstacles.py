@@ -41,7 +41,6 @@ __all__ = [
     "compact_obstacles",
     "used_bound",
     "with_used",
-    "with_switch_layout",
     "auto_slots_per_step",
     "BIG_DISTANCE",
 ]
@@ -81,14 +80,6 @@ class ObstacleSet(eqx.Module):
     a real branch when ``used`` is not batched (the simulator computes it over the batch,
     :func:`used_bound`), so scenes padded to a common capacity (one compilation for several cases)
     pay little for the padding. None (default): every step is evaluated.
-
-    ``switch_layout`` (static, default False): with ``used`` set, a family laid out in groups (32
-    slots or more) whose bound is under 32 is folded one slot per step over its first 31 slots
-    instead, a ``lax.cond`` between the two layouts (:func:`fold_slots`). For scenes padded to a
-    capacity they share with a larger scene (the study's tracking runs share the warehouse's box
-    slots, :func:`~redman_jax._pipeline.study_shapes`): those with few obstacles then evaluate only
-    their own slots, in the order of their own layout. Off by default: the conditional changes how
-    XLA fuses the grouped pass, so a large scene's results change by rounding.
     """
 
     spheres: Shapes
@@ -96,13 +87,10 @@ class ObstacleSet(eqx.Module):
     cylinders: Shapes
     slots_per_step: int = eqx.field(static=True, default=1)
     used: Int[Array, "3"] | None = None
-    switch_layout: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not isinstance(self.slots_per_step, int) or self.slots_per_step < 1:
             raise ValueError(f"ObstacleSet.slots_per_step: expected a positive int, got {self.slots_per_step!r}")
-        if not isinstance(self.switch_layout, bool):
-            raise ValueError(f"ObstacleSet.switch_layout: expected a bool, got {self.switch_layout!r}")
 
     @property
     def capacities(self) -> tuple[int, int, int]:
@@ -191,7 +179,7 @@ def pad_obstacles(obs: ObstacleSet, capacities: tuple[int, int, int]) -> Obstacl
         spheres=_pad_family(obs.spheres, capacities[0]),
         boxes=_pad_family(obs.boxes, capacities[1]),
         cylinders=_pad_family(obs.cylinders, capacities[2]),
-        slots_per_step=obs.slots_per_step, used=obs.used, switch_layout=obs.switch_layout,
+        slots_per_step=obs.slots_per_step, used=obs.used,
     )
 
 
@@ -212,13 +200,13 @@ def compact_obstacles(obs: ObstacleSet) -> ObstacleSet:
                       mask=put(take(f.mask, 0)))
 
     return ObstacleSet(spheres=fam(obs.spheres), boxes=fam(obs.boxes), cylinders=fam(obs.cylinders),
-                       slots_per_step=obs.slots_per_step, switch_layout=obs.switch_layout)
+                       slots_per_step=obs.slots_per_step)
 
 
 def with_slots_per_step(obs: ObstacleSet, slots_per_step: int) -> ObstacleSet:
     """``obs`` with another work layout (:class:`ObstacleSet`); the same obstacles."""
     return ObstacleSet(spheres=obs.spheres, boxes=obs.boxes, cylinders=obs.cylinders,
-                       slots_per_step=int(slots_per_step), used=obs.used, switch_layout=obs.switch_layout)
+                       slots_per_step=int(slots_per_step), used=obs.used)
 
 
 def used_bound(obs: ObstacleSet) -> Int[Array, "3"]:
@@ -238,70 +226,13 @@ used_bound_jit = jax.jit(used_bound)  # for host code: one compilation per shape
 def with_used(obs: ObstacleSet, used) -> ObstacleSet:
     """``obs`` with :attr:`ObstacleSet.used` set (None: evaluate every step)."""
     return ObstacleSet(spheres=obs.spheres, boxes=obs.boxes, cylinders=obs.cylinders,
-                       slots_per_step=obs.slots_per_step, used=used, switch_layout=obs.switch_layout)
-
-
-def with_switch_layout(obs: ObstacleSet, switch_layout: bool = True) -> ObstacleSet:
-    """``obs`` with :attr:`ObstacleSet.switch_layout` set; the same obstacles."""
-    return ObstacleSet(spheres=obs.spheres, boxes=obs.boxes, cylinders=obs.cylinders,
-                       slots_per_step=obs.slots_per_step, used=obs.used, switch_layout=switch_layout)
+                       slots_per_step=obs.slots_per_step, used=used)
 
 
 def fold_slots(obs: ObstacleSet, family: int, init, step):
     """``acc = step(acc, slots, c)`` over the slot groups of family ``family`` (0 spheres,
     1 boxes, 2 cylinders; :func:`slot_steps`), one ``lax.scan`` per segment; with ``obs.used``
-    set, the groups that start at or past it are skipped by a ``lax.cond`` (differentiable).
-
-    With ``obs.switch_layout`` and ``obs.used`` set (a scene padded to capacities it shares with
-    larger scenes, :class:`ObstacleSet`), the layout follows the bound at run time: a family laid
-    out in groups (32 slots or more) whose bound is under 32 is folded one slot per step over its
-    first 31 slots instead (a ``lax.cond`` between the two layouts), and the one-slot-per-step
-    folds skip whole runs of slots past the bound (``_SINGLE_RUNS``: a ``lax.cond`` around each
-    run's scan). The slots in use are folded one by one, in order, as in the layout of the scene's
-    own capacities (under 32), so its results are those of its own shapes. With ``used`` batched (a
-    ``vmap`` over scenes that each set their own) both branches are evaluated and one is selected."""
-    fam = (obs.spheres, obs.boxes, obs.cylinders)[family]
-    if not (obs.switch_layout and obs.used is not None):
-        return _fold_layout(obs, family, init, step)
-    limit = obs.used[family]
-    if _segments(fam.capacity, obs.slots_per_step)[0][2] == 1:
-        return _fold_single_runs(fam, limit, init, step)
-    few = _MIN_GROUPED_SLOTS - 1
-    head = Shapes(R=fam.R[:few], p=fam.p[:few], dims=fam.dims[:few], mask=fam.mask[:few])
-    return jax.lax.cond(limit <= few, lambda a: _fold_single_runs(head, limit, a, step),
-                        lambda a: _fold_layout(obs, family, a, step), init)
-
-
-# The runs of slots the one-slot-per-step folds of a scene with ``switch_layout`` skip whole:
-# slot 0, 1, 2-3, 4-7, 8-15, 16-31, 32-63, ...
-def _single_runs(K: int) -> list:
-    runs, start, size = [], 0, 1
-    while start < K:
-        stop = min(K, start + size)
-        runs.append((start, stop))
-        start, size = stop, (1 if stop == 1 else stop)
-    return runs
-
-
-def _fold_single_runs(fam: Shapes, limit, init, step):
-    """``step`` over ``fam``'s slots one per step, in order, those at or past ``limit`` skipped;
-    each run of :func:`_single_runs` is one ``lax.scan`` inside a ``lax.cond`` on its start."""
-    acc = init
-    for start, stop in _single_runs(fam.capacity):
-        slots = (fam.R[start:stop], fam.p[start:stop], fam.dims[start:stop], fam.mask[start:stop])
-
-        def run(a, slots=slots, start=start):
-            def body(a_, x):
-                j, sl = x
-                return jax.lax.cond(start + j < limit, lambda b: step(b, sl, 1), lambda b: b, a_), None
-
-            return jax.lax.scan(body, a, (jnp.arange(slots[0].shape[0], dtype=jnp.int32), slots))[0]
-
-        acc = jax.lax.cond(start < limit, run, lambda a: a, acc)
-    return acc
-
-
-def _fold_layout(obs: ObstacleSet, family: int, init, step):
+    set, the groups that start at or past it are skipped by a ``lax.cond`` (differentiable)."""
     fam = (obs.spheres, obs.boxes, obs.cylinders)[family]
     acc = init
     for start, slots, c in slot_steps(fam, obs.slots_per_step):

@@ -170,20 +170,31 @@ def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
     """``{case: (N, (spheres, boxes, cylinders))}``: the shapes each case is simulated at, from
     the generators' fixed capacities.
 
-    ``every_case=True`` (the study's tracking controllers): one shape for all of ``cases``, the
+    By default, cases whose obstacle families all hold fewer than 32 slots share one shape, the
     largest reference and obstacle capacities among them, so that one compilation per arm and
-    controller serves every case (:func:`run_controller`, which pads them with
-    ``switch_layout``: a case with a few boxes padded to the warehouse's 146 box slots folds its
-    own slots one per step, :class:`~redman_jax.ObstacleSet`, and its runs are those of its own
-    shapes bit for bit). 9-DOF acceleration OSC, the five cases, 20 seeds, one process: 149.2 ->
-    129.6 s, the warehouse's own compilation (21 s) saved and its run 23 -> 28 s (reference
-    padded from 320 to 2,000 samples, compacted box slots from 97 back to 146).
+    controller serves all of them (:func:`run_controller`); a case with a larger family (the
+    warehouse's 146 box slots) keeps its own. Its boxes are laid out in groups of slots
+    (:func:`~redman_jax._obstacles.slot_steps`) and the null-space policy's pass over them, with its
+    derivatives, is the costly part of the program to compile: a program shared with the small
+    cases holds their one-slot passes as well. Measured with a run-time switch between the two
+    (the small cases folding their few boxes one by one; 7733e19, reverted), velocity and
+    acceleration OSC, all five cases in one program per arm: its compilation took about as long as
+    the two programs had (9-DOF acceleration OSC, 31 against 18 + 19 s), the small cases' closed
+    loop cost 5-10 % more per evaluation, and the default study's tracking units took 733 s against
+    730 s (in a run whose unchanged gradient-guided units took 5-9 % longer than in the other).
 
-    ``every_case=False`` (the gradient-guided controller): cases whose obstacle families all hold
-    fewer than 32 slots share one shape, the largest capacities among them; a case with a larger
-    family (warehouse) keeps its own: the guidance field and estimator evaluate every slot at the
-    end effector, so padding the others to the warehouse's boxes would cost them run time (8-DOF
-    simple at (4, 97, 21): vector field 205 against 120 us at batch 20)."""
+    ``every_case=True`` (controllers whose vector field has no obstacle policy, the joint-space
+    controller: only the collision flag passes over the slots, a smallest distance, the same in
+    any layout): one shape for all of ``cases``, the warehouse included. The 9-DOF joint-space
+    units of the five cases (``sweep --arms 9 --controllers joint_space --jobs 1``), side by side
+    with the default on a core each, twice with the cores swapped: 51.5 and 55.8 s against 42.7
+    and 46.3 s (the warehouse's compilation, 16-19 s, saved); the other cases' rows the same bit for
+    bit, the warehouse's to 4e-16 (up to 0.26 % other step counts: its reference padded from 320
+    to 2,000 samples), every outcome the same.
+
+    The gradient-guided runs' guidance field and estimator evaluate every slot at the end effector,
+    padded ones included, which costs them run time (8-DOF simple, compacted (4, 1, 1) -> shared
+    (4, 5, 21): vector field 91 -> 120 us at batch 20; at (4, 97, 21): 205 us)."""
     from ._cases import CaseParams, obstacle_capacities
 
     P = CaseParams(ts=ts)
@@ -199,20 +210,17 @@ def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
 _SHARED_MAX_SLOTS = 32
 
 
-def pad_case(scen, ik, shapes, switch_layout: bool = False):
+def pad_case(scen, ik, shapes):
     """Scenarios (batched) and IK results (an ``IKResult`` or ``(q, qd, qdd)``) padded to ``shapes = (N, caps)``: reference and joint
     reference rows past the capacity are invalid samples (``mask`` False, the last row repeated;
     the simulator freezes the loop there), obstacle slots are masked. The scene's static case name
-    becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation.
-    ``switch_layout``: the padded obstacles' :attr:`~redman_jax.ObstacleSet.switch_layout`."""
-    from ._obstacles import with_switch_layout
+    becomes ``"custom"`` (the simulator never reads it), so every case shares one compilation."""
     from ._scenario import pad_rows, pad_scenario
 
     N, caps = shapes
     N = max(int(N), scen.reference.capacity)
     caps = tuple(max(a, b) for a, b in zip(caps, scen.obstacles.capacities))
     scen = pad_scenario(scen, N, caps)
-    scen = eqx.tree_at(lambda s: s.obstacles, scen, with_switch_layout(scen.obstacles, bool(switch_layout)))
     q, qd, qdd = (put(x) for x in (ik if isinstance(ik, (tuple, list)) else (ik.q, ik.qd, ik.qdd)))
     ik = (pad_rows(q, N, 1), pad_rows(qd, N + qd.shape[1] - q.shape[1], 1),
           pad_rows(qdd, N + qdd.shape[1] - q.shape[1], 1))
@@ -224,10 +232,10 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table.
 
     ``shapes``: ``(N, caps)``, this case's entry of :func:`study_shapes`; the case is simulated
-    padded to it (:func:`pad_case`, with ``switch_layout`` for the tracking controllers), so one
-    compilation serves the cases of an arm and controller that share it (in one process).
-    The rows and traces are the same as without (to rounding: a padded grouped family, such as
-    the warehouse's boxes, changes how its sum over slots is grouped)."""
+    padded to it (:func:`pad_case`), so one compilation serves the cases of an arm and controller
+    that share it (in one process).
+    The rows and traces are the same as without (to rounding: the padded obstacle slots change the
+    grouping of the sum over slots)."""
     from ._controllers import CONTROLLERS
     from ._metrics import controller_time_per_sample
     from ._sim import SimParams, simulate_batch
@@ -240,19 +248,16 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     ik = to_device(scen_payload["ik"])
     N0 = scen.reference.capacity
     if shapes is not None and tuple(shapes[1]) == scen_payload["scenarios"].obstacles.capacities:
-        # Obstacles stay compacted where the case keeps its own shapes (the warehouse's guided
-        # runs, study_shapes). The small cases share theirs, the guided runs too: their guidance
-        # field and estimator evaluate every slot at the end-effector, padded ones included, which
-        # costs run time (8-DOF simple, compacted (4, 1, 1) -> shared (4, 5, 21): vector field
-        # 91 -> 120 us at batch 20), but much less than a compilation (9-DOF simple in the study:
-        # unit 48.2 -> 7.3 s, its run 6.5 -> 6.7 s).
+        # Obstacles stay compacted where the case keeps its own shapes (warehouse). The small cases
+        # share theirs, the guided runs too: their guidance field and estimator evaluate every
+        # slot at the end-effector, padded ones included, which costs run time (8-DOF simple,
+        # compacted (4, 1, 1) -> shared (4, 5, 21): vector field 91 -> 120 us at batch 20), but
+        # much less than a compilation (9-DOF simple in the study: unit 48.2 -> 7.3 s, its run
+        # 6.5 -> 6.7 s). Padded to the warehouse's box slots they would cost more (8-DOF simple at
+        # (4, 97, 21): 205 us), so the warehouse keeps its own (study_shapes).
         shapes = (shapes[0], scen.obstacles.capacities)
     if shapes is not None:
-        # the tracking controllers' cases share the warehouse's box slots (study_shapes): the
-        # others fold their few boxes one slot per step (ObstacleSet.switch_layout). Not the
-        # guided runs: they keep the warehouse apart, and the switch's conditional would change
-        # how XLA fuses the warehouse's grouped pass, and so its rounding.
-        scen_sim, ik_sim = pad_case(scen, ik, shapes, switch_layout=not controller.uses_guidance)
+        scen_sim, ik_sim = pad_case(scen, ik, shapes)
     else:
         scen_sim, ik_sim = scen, (ik.q, ik.qd, ik.qdd)
     params = SimParams() if sim_params is None else sim_params

@@ -270,14 +270,15 @@ def scenario_key(arm: str, case: str, seeds, ts, max_retries, precision: str = "
 
 def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
     """The shapes ``(N, (spheres, boxes, cylinders))`` a simulation unit pads its case to: shared
-    with the other cases of the sweep that run ``ctrl``, all of them for a tracking controller,
-    the small ones for the gradient-guided one (:func:`~redman_jax._pipeline.study_shapes`), so
-    they depend on which cases the sweep holds."""
+    with the other cases of the sweep that run ``ctrl``, all of them for a controller without
+    obstacle policies (joint space), the small ones otherwise
+    (:func:`~redman_jax._pipeline.study_shapes`), so they depend on which cases the sweep holds."""
     from . import _pipeline as pipe
     from ._controllers import CONTROLLERS
 
     cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
-    every = not CONTROLLERS[ctrl]().uses_guidance
+    controller = CONTROLLERS[ctrl]()
+    every = not controller.uses_guidance and getattr(controller, "nullspace", "none") == "none"
     return pipe.study_shapes(cases, cfg.ts, every_case=every)[case]
 
 
