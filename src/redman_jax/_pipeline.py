@@ -184,8 +184,8 @@ def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
     730 s (in a run whose unchanged gradient-guided units took 5-9 % longer than in the other).
 
     ``every_case=True`` (controllers whose vector field has no obstacle policy, the joint-space
-    controller: only the collision flag passes over the slots, a smallest distance, the same in
-    any layout): one shape for all of ``cases``, the warehouse included. The 9-DOF joint-space
+    controller: only the collision flag passes over the slots, for a smallest distance, which no
+    layout regroups into other sums): one shape for all of ``cases``, the warehouse included. The 9-DOF joint-space
     units of the five cases (``sweep --arms 9 --controllers joint_space --jobs 1``), side by side
     with the default on a core each, twice with the cores swapped: 51.5 and 55.8 s against 42.7
     and 46.3 s (the warehouse's compilation, 16-19 s, saved); the other cases' rows the same bit for
