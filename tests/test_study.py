@@ -150,7 +150,31 @@ def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
         w = SweepConfig(cases=("warehouse",), controllers=(ctrl,))
         w2 = SweepConfig(cases=("warehouse", "simple"), controllers=(ctrl,))
         assert _run_key(w, "9", "warehouse", ctrl) == _run_key(w2, "9", "warehouse", ctrl)
-    assert pipe.study_shapes(("warehouse", "simple"))["warehouse"] != pipe.study_shapes(("warehouse", "simple"))["simple"]
+    apart = pipe.study_shapes(("warehouse", "simple"))
+    assert apart["warehouse"] != apart["simple"]
+
+
+def test_a_users_controller_without_a_nullspace_option_keeps_the_warehouse_apart(monkeypatch):
+    """Only a controller that says it has no obstacle policy (``nullspace="none"``, the joint-space
+    controller) shares the warehouse's shapes; one that does not say (a user's own, registered in
+    ``CONTROLLERS``) keeps the warehouse apart, as every controller did before."""
+    import redman_jax as rj
+    from redman_jax._study import _sim_shapes
+
+    class Own(rj.AbstractController):
+        def default_gains(self):
+            return ()
+
+        def init_state(self, arm, q0, qd0):
+            return ()
+
+        def __call__(self, gains, arm, state, ref, env):  # pragma: no cover (never simulated)
+            raise NotImplementedError
+
+    monkeypatch.setitem(rj.CONTROLLERS, "own", Own)
+    cfg = SweepConfig(cases=("warehouse", "inspection"), controllers=("own", "joint_space"))
+    assert _sim_shapes(cfg, "warehouse", "own") != _sim_shapes(cfg, "inspection", "own")
+    assert _sim_shapes(cfg, "warehouse", "joint_space") == _sim_shapes(cfg, "inspection", "joint_space")
 
 
 def test_table_without_parquet_support_removes_an_old_parquet(monkeypatch, tmp_path):

@@ -185,12 +185,12 @@ def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
 
     ``every_case=True`` (controllers whose vector field has no obstacle policy, the joint-space
     controller: only the collision flag passes over the slots, for a smallest distance, which no
-    layout regroups into other sums): one shape for all of ``cases``, the warehouse included. The 9-DOF joint-space
-    units of the five cases (``sweep --arms 9 --controllers joint_space --jobs 1``), side by side
-    with the default on a core each, twice with the cores swapped: 51.5 and 55.8 s against 42.7
-    and 46.3 s (the warehouse's compilation, 16-19 s, saved); the other cases' rows the same bit for
-    bit, the warehouse's to 4e-16 (up to 0.26 % other step counts: its reference padded from 320
-    to 2,000 samples), every outcome the same.
+    layout regroups into other sums): one shape for all of ``cases``, the warehouse included. The
+    9-DOF joint-space units of the five cases (``sweep --arms 9 --controllers joint_space --jobs
+    1``), side by side with the default on a core each, twice with the cores swapped: 51.5 and
+    55.8 s against 42.7 and 46.3 s (the warehouse's compilation, 16-19 s, saved); the other cases'
+    rows the same bit for bit, the warehouse's to 4e-16 (up to 0.26 % other step counts: its
+    reference padded from 320 to 2,000 samples), every outcome the same.
 
     The gradient-guided runs' guidance field and estimator evaluate every slot at the end effector,
     padded ones included, which costs them run time (8-DOF simple, compacted (4, 1, 1) -> shared
