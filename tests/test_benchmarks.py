@@ -35,6 +35,8 @@ SMALL_RUNS = {
     "bench_planning.py": (["--seeds", "1", "--repeat", "1"], "batch vmap"),
     "bench_sim.py": (["--dof", "7", "--seeds", "2", "--cases", "welding", "--controllers", "joint_space",
                       "--scipy-samples", "2"], "target >= 100x met in"),
+    "bench_sharded.py": (["--dof", "7", "--seeds", "1", "--case", "welding", "--controllers", "joint_space",
+                          "--repeats", "1"], "(warm: best of the repeats"),
     "bench_solvers.py": (["--dof", "7", "--seeds", "1", "--cases", "welding", "--controllers", "joint_space",
                           "--solvers", "tsit5,dopri5"], "all rows: total steps"),
     "bench_stepsize.py": (["--dof", "7", "--seeds", "1", "--cases", "welding", "--controllers", "joint_space",

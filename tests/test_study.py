@@ -603,36 +603,58 @@ SHARD_SCRIPT = textwrap.dedent(
     import sys, numpy as np, jax, jax.numpy as jnp
     import redman_jax as rj
     from redman_jax._pipeline import _pad_batch, shard_batch
+    from redman_jax._sim import _batch_mesh, simulate_batch
+    sys.path.insert(0, sys.argv[2])
+    from test_sim_guided import CTRL, GAINS, guided_scenario
     arm = rj.thesis_arm(7)
+    n = len(jax.devices())
     rng = np.random.default_rng(0)
     q = jnp.asarray(rng.normal(size=(5, 7))); qd = jnp.asarray(rng.normal(size=(5, 7)))
-    (qp, qdp), R = _pad_batch((q, qd), len(jax.devices()))
+    (qp, qdp), R = _pad_batch((q, qd), n)
     qp, qdp = shard_batch((qp, qdp))
     f = jax.jit(jax.vmap(lambda a, b: rj.forward_dynamics(arm, a, b, jnp.zeros(7))))
     out = np.asarray(f(qp, qdp))[:R]
-    np.save(sys.argv[1], out)
-    print(len(jax.devices()), len(qp.sharding.device_set))
+    # the simulator on the sweep's path: 3 gradient-guided runs (stepped from the host), padded to
+    # a multiple of the devices and sharded
+    scen = rj.stack_scenarios([guided_scenario(o, seed=i) for i, o in
+                               enumerate(((0.0, 0.35, -0.1), (0.1, -0.3, 0.0), (-0.2, 0.2, 0.1)))])
+    scen, R = _pad_batch(scen, n)
+    scen = shard_batch(scen)
+    params = rj.SimParams(guidance_samples=60, hold_samples=10)
+    res = simulate_batch(arm, scen, CTRL, GAINS, params=params, threads=1)
+    np.savez(sys.argv[1], fd=out, q=np.asarray(res.q)[:R], steps=np.asarray(res.n_steps)[:R],
+             diverged=np.asarray(res.diverged)[:R])
+    print(n, len(qp.sharding.device_set), len(scen.reference.p.sharding.device_set),
+          _batch_mesh(scen) is not None)
     """
 )
 
 
 def test_sharded_batch_equals_single_device(tmp_path):
     """The sweep's data-parallel path (pad to a multiple of the device count, shard the leading axis
-    over a 1-D mesh) gives the same numbers on 2 (forced host) devices as on one."""
+    over a 1-D mesh) gives the same numbers on 2 (forced host) devices as on one: forward dynamics
+    under ``jit``'s partitioning, and a batch of gradient-guided runs, which ``simulate_batch`` steps
+    with ``shard_map`` (each device steps its own members; ``_sim._batch_mesh``). The other
+    controllers' one-program path is ``test_distributed``'s."""
     script = tmp_path / "shard.py"
     script.write_text(SHARD_SCRIPT)
     outs = {}
     for n in (1, 2):
         flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={n}".strip()
         env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-        path = tmp_path / f"out{n}.npy"
-        proc = subprocess.run([sys.executable, str(script), str(path)], env=env, capture_output=True,
-                              text=True, timeout=300)
+        path = tmp_path / f"out{n}.npz"
+        proc = subprocess.run([sys.executable, str(script), str(path), str(Path(__file__).parent)],
+                              env=env, capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
-        assert proc.stdout.split() == [str(n), str(n)]
-        outs[n] = np.load(path)
-    assert outs[1].shape == (5, 7)
-    np.testing.assert_allclose(outs[2], outs[1], rtol=1e-12, atol=1e-12)
+        assert proc.stdout.split() == [str(n), str(n), str(n), str(n == 2)]
+        outs[n] = dict(np.load(path))
+    assert outs[1]["fd"].shape == (5, 7) and outs[1]["q"].shape == (3, 60, 7)
+    assert not outs[1]["diverged"].any()
+    np.testing.assert_allclose(outs[2]["fd"], outs[1]["fd"], rtol=1e-12, atol=1e-12)
+    # each member takes the steps of the one-device batch, to rounding (programs for 3 and 2 rows)
+    np.testing.assert_array_equal(outs[2]["steps"], outs[1]["steps"])
+    np.testing.assert_array_equal(outs[2]["diverged"], outs[1]["diverged"])
+    np.testing.assert_allclose(outs[2]["q"], outs[1]["q"], rtol=0, atol=1e-12)
 
 
 def test_gain_overrides_from_a_tuned_gains_file(tmp_path):

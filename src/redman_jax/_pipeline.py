@@ -43,7 +43,8 @@ def shard_batch(tree):
     this is a no-op. Callers pad the batch to a multiple of the device count first
     (:func:`_pad_batch`). Under ``jit`` the computation then runs data-parallel on all devices,
     those of every process in a ``jax.distributed`` run (:mod:`redman_jax._distributed`), where
-    every process must pass the same batch.
+    every process must pass the same batch; :func:`~redman_jax.simulate_batch` recognises such a
+    batch and lets each device step its own members (``shard_map``).
     """
     devices = jax.devices()
     if len(devices) == 1:
