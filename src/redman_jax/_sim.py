@@ -1290,7 +1290,11 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     so one program cannot keep two cores busy; two programs of half the batch can (2-core CPU,
     9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in two threads;
     ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and flags as in one
-    call and agrees with it to rounding (the programs are compiled for another batch size).
+    call and agrees with it to rounding (the programs are compiled for another batch size). A
+    process started with the CPU split into devices (``XLA_FLAGS=--xla_force_host_platform_device_count=2``)
+    and the batch sharded over them (:func:`~redman_jax._pipeline.shard_batch`, see above) is
+    faster still: the same case 1.9-2.1 s against 3.1-3.2 s in two threads (``bench_sim.py
+    --devices 2`` against the default, two runs each, in turn).
 
     **Raises** ``ValueError`` as :func:`simulate` does, for unbatched scenarios, a ``q0`` / ``qd0``
     not of shape ``(R, n)``, or with ``batch_gains`` a gains leaf without the leading axis ``R``.
