@@ -55,7 +55,8 @@ def main():
     seeds = list(range(1, args.seeds + 1))
     t0 = time.perf_counter()
     payload = pipe.build_case(arm, args.case, seeds)
-    print(f"{args.dof}-DOF {args.case}, {len(seeds)} seeds: scenarios built in {time.perf_counter() - t0:.1f} s")
+    print(f"{args.dof}-DOF {args.case}, {len(seeds)} seeds: scenarios built in "
+          f"{time.perf_counter() - t0:.1f} s")
     shapes = pipe.study_shapes([args.case])[args.case]
     real_mesh, real_shard = sim._batch_mesh, pipe.shard_batch
 
@@ -79,8 +80,8 @@ def main():
                 warm[v].append(run(v, ctrl)[0])
         base = rows["one device"]
         for v in VARIANTS:
-            dev = max(abs(a["final_pos_error"] - b["final_pos_error"]) / max(abs(b["final_pos_error"]), 1e-300)
-                      for a, b in zip(rows[v], base))
+            dev = max(abs(a["final_pos_error"] - b["final_pos_error"])
+                      / max(abs(b["final_pos_error"]), 1e-300) for a, b in zip(rows[v], base))
             steps = all(a["n_steps"] == b["n_steps"] for a, b in zip(rows[v], base))
             w = min(warm[v])
             print(f"{ctrl:<14}{v:<18}{cold[v]:9.2f}{w:9.3f}{min(warm['one device']) / w:14.2f}x"

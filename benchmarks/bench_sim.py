@@ -15,8 +15,8 @@ What is compared, per case and controller (scenarios and IK joint references fro
   instead splits the CPU into ``N`` XLA devices and shards the batch over them, as the sweep does
   on several devices: one call, each device stepping its own seeds (``shard_map``). On 2 cores
   that is the faster layout (9-DOF simple and welding, joint space and velocity OSC, warm: 1.4-1.7x
-  less time than two threads in two pairs of runs, in either order, the same steps; a program per device runs without the contention of
-  two programs on one device). *Cold* is the first call (tracing + compilation + run), *warm* the
+  less time than two threads in two pairs of runs, in either order, the same steps; a program per
+  device runs without the contention of two programs on one device). *Cold* is the first call (tracing + compilation + run), *warm* the
   second call.
   ``--xla-flags study`` starts JAX with the XLA flags the study's workers use
   (``redman_jax._study.WORKER_XLA_FLAGS``: XLA's older CPU loop emitters, no YNNPACK fusions), as
@@ -655,7 +655,8 @@ def main(argv=None):
     split = (f"sharded over {ndev} devices ({-(-args.seeds // ndev)} seeds each)" if ndev > 1 else
              f"in {chunks} thread(s) of {-(-args.seeds // chunks)} seeds (threads={args.threads})")
     print(f"JAX: simulate_batch over {args.seeds} seeds {split}; the process may use "
-          f"{len(os.sched_getaffinity(0))} core(s); {params.solver} rtol {rtol:g} atol {atol:g}, one horizon solve "
+          f"{len(os.sched_getaffinity(0))} core(s); {params.solver} rtol {rtol:g} atol {atol:g}, "
+          f"one horizon solve "
           f"(gradient: one stepping loop over its {params.guidance_samples}-sample horizon); "
           f"cold = first call incl. compilation, warm = second call.")
     K = args.scipy_samples

@@ -1104,7 +1104,7 @@ def _per_device(fn, args, axes, mesh):
     asks every device at every iteration whether any member still steps (a collective per step)
     and every device iterates as long as the slowest member of the whole batch. Two processes on
     one core (``jax.distributed``, 7-DOF simple, 3 seeds padded to 4, joint space): 104 s against
-    20 s for the unit, of which 17-18 s compiling either way. ``benchmarks/bench_sharded.py``."""
+    20 s for the unit, of which 16-18 s compiling either way. ``benchmarks/bench_sharded.py``."""
     if mesh is None:
         return fn(*args)
     from jax.sharding import PartitionSpec as P
@@ -1291,8 +1291,8 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in two threads;
     ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and flags as in one
     call and agrees with it to rounding (the programs are compiled for another batch size). A
-    process started with the CPU split into devices (``XLA_FLAGS=--xla_force_host_platform_device_count=2``)
-    and the batch sharded over them (:func:`~redman_jax._pipeline.shard_batch`, see above) is
+    process started with the CPU split into devices
+    (``XLA_FLAGS=--xla_force_host_platform_device_count=2``) and the batch sharded over them (:func:`~redman_jax._pipeline.shard_batch`, see above) is
     faster still: the same case 1.9-2.1 s against 3.1-3.2 s in two threads (``bench_sim.py
     --devices 2`` against the default, two runs each, in turn).
 
