@@ -83,6 +83,7 @@ is flagged ``diverged`` in its result and never affects the other members of a b
 from __future__ import annotations
 
 import dataclasses
+import inspect
 
 import equinox as eqx
 import jax
@@ -1109,6 +1110,10 @@ def _per_device(fn, args, axes, mesh):
         return fn(*args)
     from jax.sharding import PartitionSpec as P
 
+    shard_map = getattr(jax, "shard_map", None)
+    if shard_map is None:  # an older jax
+        from jax.experimental.shard_map import shard_map
+    check = "check_vma" if "check_vma" in inspect.signature(shard_map).parameters else "check_rep"
     mesh, axis = mesh
     dynamic, static = eqx.partition(args, eqx.is_array)
     specs = tuple(P(axis) if a == 0 else P() for a in axes)
@@ -1116,7 +1121,7 @@ def _per_device(fn, args, axes, mesh):
     def local(dynamic):
         return fn(*eqx.combine(dynamic, static))
 
-    return jax.shard_map(local, mesh=mesh, in_specs=(specs,), out_specs=P(axis), check_vma=False)(dynamic)
+    return shard_map(local, mesh=mesh, in_specs=(specs,), out_specs=P(axis), **{check: False})(dynamic)
 
 
 @eqx.filter_jit
