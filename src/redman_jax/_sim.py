@@ -1096,18 +1096,22 @@ def _batch_mesh(scenarios):
     return (sharding.mesh, axis) if n > 1 and x.shape[0] % n == 0 else None
 
 
-def _per_device(fn, args, axes, mesh):
-    """``fn(*args)``, which maps over the batch (the arguments whose entry in ``axes`` is 0); with
-    ``mesh = (mesh, axis)`` (:func:`_batch_mesh`) inside ``shard_map``, each device mapping its own
-    rows of the batch, the other arguments replicated.
+def _map_batch(one, shared, batch, in_axes, mesh):
+    """``jax.vmap(lambda *b: one(shared, *b), in_axes)(*batch)``: ``one`` mapped over the batch,
+    ``shared`` (a pytree, not mapped) passed to every member. With ``mesh = (mesh, axis)``
+    (:func:`_batch_mesh`) inside ``shard_map``: each device maps its own rows of the batch,
+    ``shared`` and the unmapped arguments (``in_axes`` None) replicated.
 
     Why not ``jit``'s automatic partitioning of the same program: the batch's ``while_loop`` then
     asks every device at every iteration whether any member still steps (a collective per step)
     and every device iterates as long as the slowest member of the whole batch. Two processes on
     one core (``jax.distributed``, 7-DOF simple, 3 seeds padded to 4, joint space): 104 s against
     20 s for the unit, of which 16-18 s compiling either way. ``benchmarks/bench_sharded.py``."""
+    def run(shared, *batch):
+        return jax.vmap(lambda *b: one(shared, *b), in_axes=in_axes)(*batch)
+
     if mesh is None:
-        return fn(*args)
+        return run(shared, *batch)
     from jax.sharding import PartitionSpec as P
 
     shard_map = getattr(jax, "shard_map", None)
@@ -1115,11 +1119,11 @@ def _per_device(fn, args, axes, mesh):
         from jax.experimental.shard_map import shard_map
     check = "check_vma" if "check_vma" in inspect.signature(shard_map).parameters else "check_rep"
     mesh, axis = mesh
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    specs = tuple(P(axis) if a == 0 else P() for a in axes)
+    dynamic, static = eqx.partition((shared, *batch), eqx.is_array)
+    specs = (P(),) + tuple(P(axis) if a == 0 else P() for a in in_axes)
 
     def local(dynamic):
-        return fn(*eqx.combine(dynamic, static))
+        return run(*eqx.combine(dynamic, static))
 
     return shard_map(local, mesh=mesh, in_specs=(specs,), out_specs=P(axis), **{check: False})(dynamic)
 
@@ -1130,16 +1134,14 @@ def _simulate_batch_jit(arm, scenarios, controller, gains, jref, q0, qd0, params
     # one bound on the used obstacle slots for the whole batch: unbatched, so the slot passes skip
     # the padded steps with a real branch (per member it would be a select, which skips nothing)
     used = used_bound(scenarios.obstacles)
+
+    def one(shared, s, g, j, q, qd):
+        arm, controller, params, used = shared
+        return _simulate_core(arm, _with_used_bound(s, used), controller, g, j, q, qd, params)
+
     in_axes = (0, gains_axis, None if jref is None else 0, q0_axis, q0_axis)
-
-    def run(arm, controller, params, used, *batch):
-        def one(s, g, j, q, qd):
-            return _simulate_core(arm, _with_used_bound(s, used), controller, g, j, q, qd, params)
-
-        return jax.vmap(one, in_axes=in_axes)(*batch)
-
-    return _per_device(run, (arm, controller, params, used, scenarios, gains, jref, q0, qd0),
-                       (None,) * 4 + in_axes, mesh)
+    return _map_batch(one, (arm, controller, params, used), (scenarios, gains, jref, q0, qd0), in_axes,
+                      mesh)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1163,7 +1165,9 @@ _CHECK_ITERS = 512
 _RENT_ITERS = 2048
 
 
-def _guided_member(arm, s, controller, g, q0, qd0, params, used):
+def _guided_member(shared, s, g, q0, qd0):
+    """One member's set-up and stepper functions; ``shared = (arm, controller, params, used)``."""
+    arm, controller, params, used = shared
     s = _with_used_bound(s, used)
     dtype, N, ts, fparams, env0, y0 = _guided_setup(arm, s, controller, g, q0, qd0, params)
     return s, y0, N, ts, _guided_stepper_fns(arm, controller, g, s, env0, fparams, params, N, ts)
@@ -1171,43 +1175,35 @@ def _guided_member(arm, s, controller, g, q0, qd0, params, used):
 
 @eqx.filter_jit
 def _compact_init(arm, scen, controller, gains, q0, qd0, params, used, axes, mesh=None):
-    def run(arm, controller, params, used, *batch):
-        def one(s, g, q, qd):
-            _, y0, _, _, (init, cond, _, _) = _guided_member(arm, s, controller, g, q, qd, params, used)
-            c = init(y0)
-            return c, cond(c)
+    def one(shared, s, g, q, qd):
+        _, y0, _, _, (init, cond, _, _) = _guided_member(shared, s, g, q, qd)
+        c = init(y0)
+        return c, cond(c)
 
-        return jax.vmap(one, in_axes=(0,) + axes)(*batch)
-
-    return _per_device(run, (arm, controller, params, used, scen, gains, q0, qd0),
-                       (None,) * 4 + (0,) + axes, mesh)
+    return _map_batch(one, (arm, controller, params, used), (scen, gains, q0, qd0), (0,) + axes, mesh)
 
 
 @eqx.filter_jit
 def _compact_advance(arm, scen, controller, gains, q0, qd0, params, used, axes, carry, cap, mesh=None):
-    def run(arm, controller, params, used, cap, *batch):
-        def one(s, g, q, qd, c):
-            _, _, _, _, (_, cond, body, _) = _guided_member(arm, s, controller, g, q, qd, params, used)
-            c = jax.lax.while_loop(lambda c: cond(c) & (c["steps"][0] < cap), body, c)
-            return c, cond(c)
+    def one(shared, s, g, q, qd, c):
+        member, cap = shared
+        _, _, _, _, (_, cond, body, _) = _guided_member(member, s, g, q, qd)
+        c = jax.lax.while_loop(lambda c: cond(c) & (c["steps"][0] < cap), body, c)
+        return c, cond(c)
 
-        return jax.vmap(one, in_axes=(0,) + axes + (0,))(*batch)
-
-    return _per_device(run, (arm, controller, params, used, cap, scen, gains, q0, qd0, carry),
-                       (None,) * 5 + (0,) + axes + (0,), mesh)
+    return _map_batch(one, ((arm, controller, params, used), cap), (scen, gains, q0, qd0, carry),
+                      (0,) + axes + (0,), mesh)
 
 
 @eqx.filter_jit
 def _compact_finish(arm, scen, controller, gains, q0, qd0, params, used, axes, carry, mesh=None):
-    def run(arm, controller, params, used, *batch):
-        def one(s, g, q, qd, c):
-            s, y0, N, ts, (_, _, _, outputs) = _guided_member(arm, s, controller, g, q, qd, params, used)
-            return _guided_result(arm, s, params, y0, N, ts, *outputs(c))
+    def one(shared, s, g, q, qd, c):
+        arm, _, params, _ = shared
+        s, y0, N, ts, (_, _, _, outputs) = _guided_member(shared, s, g, q, qd)
+        return _guided_result(arm, s, params, y0, N, ts, *outputs(c))
 
-        return jax.vmap(one, in_axes=(0,) + axes + (0,))(*batch)
-
-    return _per_device(run, (arm, controller, params, used, scen, gains, q0, qd0, carry),
-                       (None,) * 4 + (0,) + axes + (0,), mesh)
+    return _map_batch(one, (arm, controller, params, used), (scen, gains, q0, qd0, carry),
+                      (0,) + axes + (0,), mesh)
 
 
 def _take_rows(tree, idx, axis_batched=True):
