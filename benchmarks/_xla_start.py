@@ -21,3 +21,18 @@ def start_with_xla_flags(extra, option: str) -> str:
         raise SystemExit(f"{option}: this jaxlib does not start with XLA_FLAGS={flags!r}")
     os.environ["XLA_FLAGS"] = flags
     return flags
+
+
+def start_with_host_devices(count: int, extra=(), option: str = "--devices") -> str:
+    """:func:`start_with_xla_flags` with the CPU split into ``count`` XLA devices
+    (``--xla_force_host_platform_device_count``) besides ``extra``; exits naming ``option`` if the
+    count is not positive or JAX starts with another one (``$XLA_FLAGS`` named it)."""
+    if count < 1:
+        raise SystemExit(f"{option}: expected a positive count, got {count}")
+    flags = start_with_xla_flags((*extra, f"--xla_force_host_platform_device_count={count}"), option)
+    import jax
+
+    if len(jax.devices()) != count:
+        raise SystemExit(f"{option} {count}: JAX started with {len(jax.devices())} devices "
+                         f"(XLA_FLAGS={flags!r})")
+    return flags

@@ -98,14 +98,9 @@ def main():
                          "and run every batch they divide as one shard per device")
     args = ap.parse_args()
     if args.devices is not None:
-        from _xla_start import start_with_xla_flags
+        from _xla_start import start_with_host_devices
 
-        if args.devices < 1:
-            raise SystemExit(f"--devices: expected a positive count, got {args.devices}")
-        start_with_xla_flags((f"--xla_force_host_platform_device_count={args.devices}",), "--devices")
-        if len(jax.devices()) != args.devices:  # $XLA_FLAGS named another count
-            raise SystemExit(f"--devices {args.devices}: JAX started with {len(jax.devices())} devices "
-                             f"(XLA_FLAGS={os.environ['XLA_FLAGS']!r})")
+        start_with_host_devices(args.devices)
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")

@@ -16,8 +16,8 @@ What is compared, per case and controller (scenarios and IK joint references fro
   on several devices: one call, each device stepping its own seeds (``shard_map``). On 2 cores
   that is the faster layout (9-DOF simple and welding, joint space and velocity OSC, warm: 1.4-1.7x
   less time than two threads in two pairs of runs, in either order, the same steps; a program per
-  device runs without the contention of two programs on one device). *Cold* is the first call (tracing + compilation + run), *warm* the
-  second call.
+  device runs without the contention of two programs on one device). *Cold* is the first call
+  (tracing + compilation + run), *warm* the second call.
   ``--xla-flags study`` starts JAX with the XLA flags the study's workers use
   (``redman_jax._study.WORKER_XLA_FLAGS``: XLA's older CPU loop emitters, no YNNPACK fusions), as
   ``make run`` simulates; the default is JAX's own flags.
@@ -625,19 +625,19 @@ def main(argv=None):
                     help="'study': start JAX with the XLA flags the study's workers use "
                          "(redman_jax._study.WORKER_XLA_FLAGS, added to $XLA_FLAGS)")
     args = ap.parse_args(argv)
-    if args.devices is not None and (args.devices < 1 or args.threads not in (None, 1)):
-        raise SystemExit(f"--devices: expected a positive count and no --threads, got {args.devices}")
+    if args.devices is not None and args.threads not in (None, 1):
+        raise SystemExit(f"--devices: shards the batch over the devices in one call; "
+                         f"no --threads {args.threads}")
     if args.xla_flags == "study" or args.devices is not None:
-        from _xla_start import start_with_xla_flags
+        from _xla_start import start_with_host_devices, start_with_xla_flags
 
         from redman_jax._study import WORKER_XLA_FLAGS
 
         extra = WORKER_XLA_FLAGS if args.xla_flags == "study" else ()
-        if args.devices is not None:
-            extra = (*extra, f"--xla_force_host_platform_device_count={args.devices}")
-        start_with_xla_flags(extra, "--xla-flags study" if args.devices is None else "--devices")
-        if args.devices is not None and len(jax.devices()) != args.devices:  # $XLA_FLAGS named another
-            raise SystemExit(f"--devices {args.devices}: JAX started with {len(jax.devices())} devices")
+        if args.devices is None:
+            start_with_xla_flags(extra, "--xla-flags study")
+        else:
+            start_with_host_devices(args.devices, extra)
 
     params = SimParams()
     # None (the default) means by the states' precision: float64's unless x64 is off
