@@ -21,7 +21,9 @@ What it shows:
   ``jax.grad`` w.r.t. gains never recompile;
 * ``redman_jax.CONTROLLERS[name] = cls`` registers it; from then on every part of the study accepts
   ``name``: :class:`redman_jax.SweepConfig`, :func:`redman_jax.run_sweep` (resumable; rows in
-  ``DIR/runs.csv``), gain overrides (``SweepConfig(gains={name: {"kp": 3000.0}})``).
+  ``DIR/runs.csv``), gain overrides (``SweepConfig(gains={name: {"kp": 3000.0}})``);
+* ``reads_obstacles = False`` tells the study that the control law never reads the obstacles
+  (they still set the collision flag), so one compilation serves every case of an arm.
 
 Run (full: 3 arms x 5 cases x 20 seeds, OS-PD beside the velocity and acceleration OSC; hours on
 2 cores)::
@@ -83,6 +85,12 @@ class OSPD(rj.AbstractController):
 
     def init_state(self, arm, q0, qd0):
         return ()
+
+    @property
+    def reads_obstacles(self) -> bool:
+        """No obstacle policy (the damping policy only): the study pads all of a sweep's cases,
+        the warehouse included, to one shape and compiles once for them."""
+        return False
 
     def __call__(self, gains: OSPDGains, arm, state: rj.ControlState, ref: rj.RefSample,
                  env: rj.Environment) -> rj.ControlOutput:

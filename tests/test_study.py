@@ -154,10 +154,11 @@ def test_simulation_key_holds_the_shapes_the_case_is_padded_to():
     assert apart["warehouse"] != apart["simple"]
 
 
-def test_a_users_controller_without_a_nullspace_option_keeps_the_warehouse_apart(monkeypatch):
-    """Only a controller that says it has no obstacle policy (``nullspace="none"``, the joint-space
-    controller) shares the warehouse's shapes; one that does not say (a user's own, registered in
-    ``CONTROLLERS``) keeps the warehouse apart, as every controller did before."""
+def test_only_a_controller_that_does_not_read_the_obstacles_shares_the_warehouses_shapes(monkeypatch):
+    """Only a controller whose control law does not pass over the obstacles (``reads_obstacles``
+    False: the joint-space controller, ``nullspace="none"``) shares the warehouse's shapes; one
+    that does not say (a user's own, registered in ``CONTROLLERS``) keeps the warehouse apart, as
+    every controller did before; a user's that says so shares them."""
     import redman_jax as rj
     from redman_jax._study import _sim_shapes
 
@@ -171,10 +172,21 @@ def test_a_users_controller_without_a_nullspace_option_keeps_the_warehouse_apart
         def __call__(self, gains, arm, state, ref, env):  # pragma: no cover (never simulated)
             raise NotImplementedError
 
+    class Blind(Own):
+        @property
+        def reads_obstacles(self):
+            return False
+
+    reads = {name: rj.CONTROLLERS[name]().reads_obstacles for name in rj.CONTROLLERS}
+    assert [k for k, v in reads.items() if not v] == ["joint_space", "pid"], reads
+    assert rj.CONTROLLERS["joint_space"](nullspace="actuator").reads_obstacles
+    assert not rj.CONTROLLERS["velocity"](nullspace="none").reads_obstacles
     monkeypatch.setitem(rj.CONTROLLERS, "own", Own)
-    cfg = SweepConfig(cases=("warehouse", "inspection"), controllers=("own", "joint_space"))
+    monkeypatch.setitem(rj.CONTROLLERS, "blind", Blind)
+    cfg = SweepConfig(cases=("warehouse", "inspection"), controllers=("own", "blind", "joint_space"))
     assert _sim_shapes(cfg, "warehouse", "own") != _sim_shapes(cfg, "inspection", "own")
-    assert _sim_shapes(cfg, "warehouse", "joint_space") == _sim_shapes(cfg, "inspection", "joint_space")
+    for ctrl in ("blind", "joint_space"):
+        assert _sim_shapes(cfg, "warehouse", ctrl) == _sim_shapes(cfg, "inspection", ctrl)
 
 
 def test_table_without_parquet_support_removes_an_old_parquet(monkeypatch, tmp_path):

@@ -118,3 +118,12 @@ class AbstractController(eqx.Module):
     def uses_guidance(self) -> bool:
         """True for the gradient-guided controller (the simulator runs the estimator for it)."""
         return False
+
+    @property
+    def reads_obstacles(self) -> bool:
+        """Whether the control law passes over the environment's obstacles (a null-space obstacle
+        policy, a guidance field). True unless a controller says otherwise: the study shares one
+        padded shape among all its cases only for a controller that does not
+        (:func:`~redman_jax._pipeline.study_shapes`, ``every_case``); the simulator's collision
+        flag passes over them in any case."""
+        return True

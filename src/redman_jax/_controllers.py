@@ -323,6 +323,11 @@ class _OSCOptions(AbstractController):
     def _nullspace_modes(self):
         return _NULLSPACE_MODES
 
+    @property
+    def reads_obstacles(self) -> bool:
+        """Only through a null-space policy (``nullspace`` other than ``"none"``) or guidance."""
+        return self.uses_guidance or self.nullspace != "none"
+
     def _lam(self, J_s, m, pg: PolicyGains):
         return damping_factor(J_s, pg.lam_ratio, pg.lam_floor, row_mask=m, method=self.sigma_method)
 

@@ -270,16 +270,15 @@ def scenario_key(arm: str, case: str, seeds, ts, max_retries, precision: str = "
 
 def _sim_shapes(cfg: SweepConfig, case: str, ctrl: str):
     """The shapes ``(N, (spheres, boxes, cylinders))`` a simulation unit pads its case to: shared
-    with the other cases of the sweep that run ``ctrl``, all of them for a controller whose
-    ``nullspace`` option is ``"none"`` (joint space: no obstacle policy), the small ones otherwise,
-    a user's controller without that option included (:func:`~redman_jax._pipeline.study_shapes`),
-    so they depend on which cases the sweep holds."""
+    with the other cases of the sweep that run ``ctrl``, all of them for a controller whose control
+    law does not read the obstacles (``reads_obstacles``: joint space, with no null-space policy),
+    the small ones otherwise (:func:`~redman_jax._pipeline.study_shapes`), so they depend on which
+    cases the sweep holds."""
     from . import _pipeline as pipe
     from ._controllers import CONTROLLERS
 
     cases = [c for c in cfg.cases if ctrl in cfg.controllers_for(c)]
-    controller = CONTROLLERS[ctrl]()
-    every = not controller.uses_guidance and getattr(controller, "nullspace", None) == "none"
+    every = not CONTROLLERS[ctrl]().reads_obstacles
     return pipe.study_shapes(cases, cfg.ts, every_case=every)[case]
 
 
