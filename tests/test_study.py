@@ -633,11 +633,19 @@ SHARD_SCRIPT = textwrap.dedent(
     scen, R = _pad_batch(scen, n)
     scen = shard_batch(scen)
     params = rj.SimParams(guidance_samples=60, hold_samples=10)
-    res = simulate_batch(arm, scen, CTRL, GAINS, params=params, threads=1)
+    res = simulate_batch(arm, scen, CTRL, GAINS, params=params)
     np.savez(sys.argv[1], fd=out, q=np.asarray(res.q)[:R], steps=np.asarray(res.n_steps)[:R],
              diverged=np.asarray(res.diverged)[:R])
     print(n, len(qp.sharding.device_set), len(scen.reference.p.sharding.device_set),
           _batch_mesh(scen) is not None)
+    if n > 1:  # a sharded batch is one program by default (no host chunks), and threads > 1 refused
+        from redman_jax._sim import _chunks
+        print(_chunks(None, 16 * n, shard_batch(jnp.zeros((16 * n, 3)))))
+        try:
+            simulate_batch(arm, scen, CTRL, GAINS, params=params, threads=2)
+            print("ran")
+        except ValueError as e:
+            print("threads=2" in str(e) and "sharded over several" in str(e))
     """
 )
 
@@ -646,8 +654,9 @@ def test_sharded_batch_equals_single_device(tmp_path):
     """The sweep's data-parallel path (pad to a multiple of the device count, shard the leading axis
     over a 1-D mesh) gives the same numbers on 2 (forced host) devices as on one: forward dynamics
     under ``jit``'s partitioning, and a batch of gradient-guided runs, which ``simulate_batch`` steps
-    with ``shard_map`` (each device steps its own members; ``_sim._batch_mesh``). The other
-    controllers' one-program path is ``test_distributed``'s."""
+    with ``shard_map`` (each device steps its own members; ``_sim._batch_mesh``), also with the
+    default ``threads`` (a sharded batch is not split into host threads; ``threads=2`` is refused).
+    The other controllers' one-program path is ``test_distributed``'s."""
     script = tmp_path / "shard.py"
     script.write_text(SHARD_SCRIPT)
     outs = {}
@@ -658,7 +667,7 @@ def test_sharded_batch_equals_single_device(tmp_path):
         proc = subprocess.run([sys.executable, str(script), str(path), str(Path(__file__).parent)],
                               env=env, capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
-        assert proc.stdout.split() == [str(n), str(n), str(n), str(n == 2)]
+        assert proc.stdout.split() == [str(n), str(n), str(n), str(n == 2)] + (["1", "True"] if n == 2 else [])
         outs[n] = dict(np.load(path))
     assert outs[1]["fd"].shape == (5, 7) and outs[1]["q"].shape == (3, 60, 7)
     assert not outs[1]["diverged"].any()
