@@ -320,34 +320,29 @@ def test_a_nan_member_leaves_the_batchs_gradient_finite():
     gated off in the vector field, but its zero cotangent met the control law's NaN partials
     (0 * NaN = NaN) and the gains' gradient, summed over the batch, was NaN for every member. The
     closed loop now reads a NaN state or reference as 0 (the member stays flagged), so the batch's
-    gradient of a loss of the healthy members is the clean batch's."""
+    gradient of a loss of the healthy members is the clean batch's.
+
+    The same through the run's metrics: the poisoned member's NaN errors (NaN - p_d) had a NaN
+    partial in the norm behind their where, and its zero cotangent times NaN was NaN for all. Both
+    losses are rows of one reverse-mode Jacobian (one program, two cotangents)."""
     sc, jref = joint_motion_scenario(ARM, DQ_FREE, 0.1, 15)
     batch = stack_scenarios([sc, sc])
     J = jax.tree.map(lambda x: jnp.stack([x, x]), jref)
     bad = eqx.tree_at(lambda s: s.reference.p, batch, batch.reference.p.at[1, 5, 0].set(jnp.nan))
 
-    @jax.jit
-    def loss(kp, scen):
+    def losses(kp, scen):
         r = simulate_batch(ARM, scen, CTRL, toy_gains("osc", kp=jnp.stack([kp, 1000.0, 10.0])), ik=J)
-        return jnp.sum(jnp.where(r.diverged, 0.0, jnp.sum(r.q[:, -1] ** 2, axis=-1))), r.diverged
+        final = jnp.sum(jnp.where(r.diverged, 0.0, jnp.sum(r.q[:, -1] ** 2, axis=-1)))
+        metric = r.metrics.mean_pos_err[0] + r.metrics.final_pos_err[0]
+        return jnp.stack([final, metric]), (final, r.diverged)
 
-    (v0, d0), g0 = jax.value_and_grad(loss, has_aux=True)(250.0, batch)
-    (v1, d1), g1 = jax.value_and_grad(loss, has_aux=True)(250.0, bad)
+    jac = jax.jit(jax.jacrev(losses, has_aux=True))
+    (g0, gm0), (v0, d0) = jac(250.0, batch)
+    (g1, gm1), (v1, d1) = jac(250.0, bad)
     assert np.asarray(d0).tolist() == [False, False] and np.asarray(d1).tolist() == [False, True]
     assert np.isfinite(float(g1)) and float(g0) != 0.0
     np.testing.assert_allclose(float(v1), float(v0) / 2, rtol=1e-12)
     np.testing.assert_allclose(float(g1), float(g0) / 2, rtol=1e-9)
-
-    # the same through the run's metrics: the poisoned member's NaN errors (NaN - p_d) had a NaN
-    # partial in the norm behind their where, and its zero cotangent times NaN was NaN for all
-    @jax.jit
-    def metric_loss(kp, scen):
-        r = simulate_batch(ARM, scen, CTRL, toy_gains("osc", kp=jnp.stack([kp, 1000.0, 10.0])), ik=J)
-        m = r.metrics
-        return m.mean_pos_err[0] + m.final_pos_err[0]
-
-    gm0 = jax.grad(metric_loss)(250.0, batch)
-    gm1 = jax.grad(metric_loss)(250.0, bad)
     assert np.isfinite(float(gm0)) and float(gm0) != 0.0
     np.testing.assert_allclose(float(gm1), float(gm0), rtol=1e-9)
 
