@@ -1286,16 +1286,17 @@ def simulate_batch(arm: Arm, scenarios: Scenario, controller: AbstractController
     simulated by the same compiled program on a host thread of its own, at once. None (default):
     one chunk per core this process may run on (``os.sched_getaffinity``), at most one per
     ``_MIN_CHUNK`` members, and 1 on other backends, under a trace or for a batch sharded over
-    several devices or processes (where ``threads`` must be None or 1). Why: at the study's batch of 20, a
-    program's operations are small and XLA's CPU runtime spends most of its time dispatching them,
-    so one program cannot keep two cores busy; two programs of half the batch can (2-core CPU,
-    9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in two threads;
-    ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and flags as in one
-    call and agrees with it to rounding (the programs are compiled for another batch size). A
-    process started with the CPU split into devices
-    (``XLA_FLAGS=--xla_force_host_platform_device_count=2``) and the batch sharded over them (:func:`~redman_jax._pipeline.shard_batch`, see above) is
-    faster still: the same case 1.9-2.1 s against 3.1-3.2 s in two threads (``bench_sim.py
-    --devices 2`` against the default, two runs each, in turn).
+    several devices or processes (where ``threads`` must be None or 1). Why: at the study's batch
+    of 20, a program's operations are small and XLA's CPU runtime spends most of its time
+    dispatching them, so one program cannot keep two cores busy; two programs of half the batch
+    can (2-core CPU, 9-DOF simple case, joint space, 20 seeds, warm: 6.0 s in one call, 3.1 s in
+    two threads; ``benchmarks/bench_sim.py --threads``). Each member takes the same steps and
+    flags as in one call and agrees with it to rounding (the programs are compiled for another
+    batch size). A process started with the CPU split into devices
+    (``XLA_FLAGS=--xla_force_host_platform_device_count=2``) and the batch sharded over them
+    (:func:`~redman_jax._pipeline.shard_batch`, see above) is faster still: the same case 1.9-2.1
+    s against 3.1-3.2 s in two threads (``bench_sim.py --devices 2`` against the default, two runs
+    each, in turn).
 
     **Raises** ``ValueError`` as :func:`simulate` does, for unbatched scenarios, a ``q0`` / ``qd0``
     not of shape ``(R, n)``, or with ``batch_gains`` a gains leaf without the leading axis ``R``.
@@ -1349,7 +1350,7 @@ def _chunks(threads, R: int, tree) -> int:
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
                                 or threads < 1):
         raise ValueError(f"simulate_batch: threads must be a positive int or None, got {threads!r}")
-    # where the batch is one program: under a trace, or sharded over several processes
+    # where the batch is one program: under a trace, or sharded over several processes or devices
     one_program = ("concrete inputs (called under a trace, the batch is one program)" if _has_tracer(tree)
                    else "a batch held by this process (it is sharded over several processes: one program)"
                    if _spans_processes(tree) else
@@ -1390,8 +1391,8 @@ def _spans_devices(tree) -> bool:
     program, in ``shard_map`` where :func:`_batch_mesh` recognises it: chunks taken on the host
     for threads would undo that layout; 9-DOF simple, joint space, 20 seeds on 2 CPU devices:
     3.2-3.5 s in two threads against 1.9-2.2 s sharded)."""
-    return any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and len(x.sharding.device_set) > 1
-               for x in jax.tree.leaves(tree))
+    return any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)
+               and len(x.sharding.device_set) > 1 for x in jax.tree.leaves(tree))
 
 
 def _spans_processes(tree) -> bool:
