@@ -531,7 +531,6 @@ def time_jax(arm, scen, ik, name, params, threads=None):
 
         (scen, ik_arg), _ = _pad_batch((scen, ik_arg), len(jax.devices()))
         scen, ik_arg = shard_batch((scen, ik_arg))
-        threads = 1
     t0 = time.perf_counter()
     _block(simulate_batch(arm, scen, c, g, ik=ik_arg, params=params, threads=threads))
     cold = time.perf_counter() - t0
