@@ -107,7 +107,7 @@ def test_custom_controller(tmp_path, env):
         assert math.isfinite(num(r[key])), (key, r[key])
     # a PD law without feed-forward lags a moving reference but stays well inside the success radius
     assert 0.0 < num(r["mean_pos_error"]) < 0.05
-    assert r["success"] == "True" and r["diverged"] == "False"
+    assert r["success"] == "True" and r["diverged"] == "False" and r["out_of_steps"] == "False"
     assert int(r["n_steps"]) >= int(r["n_samples"]) > 50
     assert 0.0 < num(r["t_controller_per_sample"]) < 0.1  # one control-law evaluation, seconds
     assert (out / "config.json").is_file() and (out / "traces" / "7dof_inspection_os_pd.npz").is_file()

@@ -487,3 +487,23 @@ def test_figures_use_only_the_scenes_of_the_tables_sweep(tmp_path):
     for seed in (None, 1):
         with pytest.raises(_NotGenerated, match="another sweep's scenes"):
             _stored_scenario(d, "9dof", "simple", seed)
+
+
+def test_diverged_gradient_failures_say_which_ran_out_of_steps(tmp_path):
+    """R2.d counts the diverged gradient-guided failures and says how many of them only used up
+    the solver's step budget (column ``out_of_steps``), and how many of those sat within the success
+    radius (a success the budget took away); a table without the column gets no such note."""
+    rows = synthetic_study(tmp_path)
+    assert "step budget" not in _claims(tmp_path)["R2.d"].why
+    fails = [r for r in rows if r["controller"] == "gradient" and not r["success"]]
+    for r in fails[:3]:
+        r["diverged"] = True
+    fails[1]["out_of_steps"] = True
+    fails[2]["out_of_steps"] = True
+    fails[2]["final_pos_error"] = 0.08  # within the success radius when the budget ran out
+    write_table(tmp_path, rows)
+    c = _claims(tmp_path)["R2.d"]
+    assert c.verdict == DIFFERS
+    assert (f"{len(fails) - 3} not reached, 0 collided, 3 diverged (2 of them out of the solver's "
+            "step budget, 1 of those within 10 cm of the goal at their last sample)") in c.why
+    assert load_runs(tmp_path)[0]["out_of_steps"] == ""  # written as empty where a row has none

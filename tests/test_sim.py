@@ -359,6 +359,7 @@ def test_batch_equals_single_runs_and_nan_is_isolated():
     # inject a NaN into member 2's reference: it is flagged, the others are bit-identical
     poisoned = simulate_batch(ARM, with_nan_reference(scs, 2), CTRL, g, ik=jrefs)
     assert bool(poisoned.diverged[2]) and not bool(poisoned.metrics.success[2])
+    assert not np.any(np.asarray(poisoned.out_of_steps))  # flagged, not out of its step budget
     assert int(poisoned.metrics.cause[2]) == 3
     assert np.all(np.isfinite(np.asarray(poisoned.q[2])))  # frozen, not NaN
     for i in (0, 1, 3):
@@ -425,6 +426,7 @@ def test_a_solve_out_of_steps_is_flagged_diverged_and_nothing_else(free):
     res = run(sc, jref, "osc", params=SimParams(max_steps_per_sample=1, rtol=1e-10))
     m = res.metrics
     assert int(res.status) != 0 and bool(res.diverged) and int(m.cause) == 3 and not bool(m.success)
+    assert bool(res.out_of_steps)
     f_obs = np.asarray(res.f_obs)
     assert not np.all(np.isfinite(f_obs)), "the solve was meant to stop early"
     assert not bool(m.collided) and not bool(m.joint_limit)

@@ -250,10 +250,11 @@ def test_what_happens_after_the_stop_does_not_count():
     y0 = _initial_state(ARM, CTRL, None, None, jnp.float64)
     rows = jax.tree.map(lambda x: jnp.broadcast_to(x, (N,) + x.shape), y0)
 
-    def outcome(bad_from):
+    def outcome(bad_from, inf_rows=True, out_of_steps=True):
         bad = jnp.arange(N) >= bad_from
-        ys = jax.tree.map(lambda x: jnp.where(bad.reshape((N,) + (1,) * (x.ndim - 1)), jnp.inf, x), rows)
-        status = jnp.where(bad, diffrax.RESULTS.max_steps_reached._value, 0)
+        ys = rows if not inf_rows else jax.tree.map(
+            lambda x: jnp.where(bad.reshape((N,) + (1,) * (x.ndim - 1)), jnp.inf, x), rows)
+        status = jnp.where(bad & out_of_steps, diffrax.RESULTS.max_steps_reached._value, 0)
         return _guided_result(ARM, scen, params, y0, N, jnp.asarray(TS), ys, jnp.zeros(3, jnp.int32),
                               status, jnp.zeros((N, 3)), jnp.zeros(N, bool), jnp.zeros(N),
                               VirtualBuffer.empty(4, jnp.float64))
@@ -265,6 +266,13 @@ def test_what_happens_after_the_stop_does_not_count():
     before = outcome(hold // 2)  # blew up inside the hold
     assert bool(before.diverged) and not bool(before.metrics.success) and int(before.metrics.cause) == 3
     assert not bool(before.metrics.collided) and not bool(before.metrics.joint_limit)
+    assert not bool(after.out_of_steps) and bool(before.out_of_steps)
+    # the step budget used up inside the hold, the rows not reached holding the last (finite) state
+    # as the stepper leaves them: diverged, out of steps; blown up with no solver status: not
+    spent = outcome(hold // 2, inf_rows=False)
+    assert bool(spent.diverged) and bool(spent.out_of_steps) and int(spent.metrics.cause) == 3
+    blown = outcome(hold // 2, out_of_steps=False)
+    assert bool(blown.diverged) and not bool(blown.out_of_steps) and int(blown.metrics.cause) == 3
 
 
 def test_sim_params_field_drives_the_controller_and_the_estimator():

@@ -314,6 +314,7 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
             "time_to_goal": float(res.time_to_goal[i]),
             "path_length": float(res.path_length[i]),
             "diverged": bool(res.diverged[i]),
+            "out_of_steps": bool(res.out_of_steps[i]),
             "n_steps": int(res.n_steps[i]),
             "goal_field_shift": float(field_shift[i]),
             "sim_wall_s": t_sim / R,

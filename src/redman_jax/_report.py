@@ -19,7 +19,8 @@ Metrics follow SPEC section 10:
 * **Orientation error** ``|e_o| = sin(phi/2)`` (E19) pooled over the ``rot = 1`` samples of the
   successful runs, from the traces (falling back to the mean of the runs' means without traces).
 * **Failure**: collision or final error > 0.10 m; the cause is "collision" when the run collided
-  (whatever the final error), "diverged" when the integration blew up, otherwise "not reached".
+  (whatever the final error), "diverged" when the integration blew up or stopped (of these, column
+  ``out_of_steps`` marks the runs whose solver used up its step budget), otherwise "not reached".
 * **Total compute per test case** ``T = sum_c t_c * mean(N_samples)`` over the components ``c`` a
   controller needs (:data:`COST_COMPONENTS`): joint space = controller + IK + planning; operational
   space = controller + planning; gradient-guided = controller + local-minima estimator, times its
@@ -332,7 +333,8 @@ def run_cause(r: dict) -> str:
     """``"success"``, ``"collision"``, ``"diverged"`` or ``"not reached"`` for one run row.
 
     ``success`` is taken from the table when present; a failed run is a "collision" when it
-    collided (whatever its final error, thesis 4.4), otherwise "diverged" or "not reached".
+    collided (whatever its final error, thesis 4.4), otherwise "diverged" (the integration blew up
+    or stopped, its step budget used up included: column ``out_of_steps``) or "not reached".
     """
     if "success" in r and r["success"] not in ("", None):
         ok = _flag(r["success"])
@@ -564,12 +566,26 @@ def _claims_r2(d: StudyData) -> list[Claim]:
         far = [_num(r.get("final_pos_error")) for r in fails]
         far = [x for x in far if math.isfinite(x)]
         why = (f"{len(fails) - n_coll - n_div} not reached, {n_coll} collided, {n_div} diverged"
+               + _out_of_steps_note([r for r in fails if run_cause(r) == "diverged"])
                + (f"; final distance of the failures median {np.median(far):.3f} m, max {max(far):.3f} m"
                   if far else ""))
         out.append(Claim("R2.d", stmt, "all failures not reached",
                          f"{len(fails) - n_coll - n_div} of {len(fails)} not reached",
                          _v(n_coll == 0 and n_div == 0), why))
     return out
+
+
+def _out_of_steps_note(diverged) -> str:
+    """Of the ``diverged`` rows, those whose solver used up its step budget (column
+    ``out_of_steps``): runs that may never have blown up, and those of them that ended within the
+    success radius, a success the budget decided (absent from older tables: no note)."""
+    spent = [r for r in diverged if _flag(r.get("out_of_steps"))]
+    if not spent:
+        return ""
+    near = sum(_num(r.get("final_pos_error")) < SUCCESS_RADIUS for r in spent)
+    return (f" ({len(spent)} of them out of the solver's step budget"
+            + (f", {near} of those within {100 * SUCCESS_RADIUS:.0f} cm of the goal at their last "
+               "sample" if near else "") + ")")
 
 
 def _field_shift_note(rows) -> str:

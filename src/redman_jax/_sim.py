@@ -286,7 +286,11 @@ class SimResult(eqx.Module):
     Per run: ``metrics`` (:class:`~redman_jax._metrics.RunMetrics`), ``n_samples``, ``path_length``
     [m], ``time_to_goal`` [s] (gradient-guided; ``inf`` otherwise), diagnostics ``n_steps``,
     ``n_accepted``, ``n_rejected``, ``status`` (0 = every solve successful, else a diffrax
-    ``RESULTS`` code), ``diverged``, and the final controller state ``z``.
+    ``RESULTS`` code), ``diverged`` (the run is not to be trusted: a state left the bounds or was
+    not finite, or the solver stopped), ``out_of_steps`` (of those, the solver used up its step
+    budget, ``SimParams.max_steps_per_sample`` times the samples, before the run's end: a run that
+    may not have blown up at all, e.g. one chattering along a discontinuity of its control law),
+    and the final controller state ``z``.
 
     Gradient-guided runs also keep every estimate of the local-minima estimator (``estimates``
     ``(N, 3)``, ``estimate_valid`` ``(N,)``, the estimate made at the start of sample ``k``) and the
@@ -314,6 +318,7 @@ class SimResult(eqx.Module):
     n_rejected: Int[Array, ""]
     status: Int[Array, ""]
     diverged: Bool[Array, ""]
+    out_of_steps: Bool[Array, ""]
     z: PyTree
     estimates: Float[Array, "N 3"]
     estimate_valid: Bool[Array, " N"]
@@ -779,6 +784,12 @@ def _diverged(ys: _Y, status, rows=None):
     return flag | (~finite) | (status != 0)
 
 
+def _out_of_steps(status):
+    """The solver stopped at its step budget: ``status`` (a scalar, or one per sample) holds
+    diffrax's ``max_steps_reached``."""
+    return jnp.any(jnp.asarray(status) == diffrax.RESULTS.max_steps_reached._value)
+
+
 def _final_flags(f, rows):
     """The obstacle and joint-limit flags (columns 0 and 1 of the integrated flag states) over
     ``rows``: their largest finite *absolute* value there.
@@ -828,7 +839,8 @@ def _simulate_tracking(arm, scenario, controller, gains, jref, q0, qd0, params) 
         f_obs=ys.f[:, 0], f_jl=ys.f[:, 1], rot=ref.rot.astype(dtype), mask=mask, metrics=metrics,
         n_samples=ref.n_samples.astype(jnp.int32), path_length=path_length(p0[0], p, mask),
         time_to_goal=jnp.asarray(jnp.inf, dtype), n_steps=steps[0], n_accepted=steps[1],
-        n_rejected=steps[2], status=status, diverged=diverged, z=_unpack_z(jax.tree.map(lambda x: x[last], ys.z)),
+        n_rejected=steps[2], status=status, diverged=diverged,
+        out_of_steps=_out_of_steps(status), z=_unpack_z(jax.tree.map(lambda x: x[last], ys.z)),
         estimates=jnp.zeros((N, 3), dtype), estimate_valid=jnp.zeros((N,), bool),
         virtual_p=jnp.zeros((B, 3), dtype), virtual_mask=jnp.zeros((B,), bool),
     )
@@ -914,6 +926,7 @@ def _guided_result(arm, scenario, params, y0, N, ts, ys, steps, status, est, est
         f_jl=ys.f[:, 1], rot=rots, mask=term.mask, metrics=metrics, n_samples=term.n_samples,
         path_length=path_length(p0, p, term.mask), time_to_goal=term.time_to_goal,
         n_steps=steps[0], n_accepted=steps[1], n_rejected=steps[2], status=status, diverged=diverged,
+        out_of_steps=_out_of_steps(status),
         z=_unpack_z(jax.tree.map(lambda x: x[last], ys.z)), estimates=est, estimate_valid=est_ok,
         virtual_p=buf.p, virtual_mask=buf.mask,
     )

@@ -68,7 +68,8 @@ RUN_COLUMNS = (
     "arm", "case", "seed", "seed_used", "controller", "success", "collided", "joint_limit_hit",
     "reached", "final_pos_error", "mean_pos_error", "mean_ori_error", "n_samples",
     "t_controller_per_sample", "t_ik_per_sample", "t_planning_per_sample", "t_lme_per_sample",
-    "min_distance", "time_to_goal", "path_length", "diverged", "n_steps", "goal_field_shift",
+    "min_distance", "time_to_goal", "path_length", "diverged", "out_of_steps", "n_steps",
+    "goal_field_shift",
 )
 
 
