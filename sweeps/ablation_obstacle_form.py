@@ -67,12 +67,22 @@ def out_of_steps_budget() -> int:
     return p.max_steps_per_sample * p.guidance_samples
 
 
+def ran_out_of_steps(r: dict, budget: int) -> bool:
+    """A run that used up its solver's step budget: the table's ``out_of_steps`` column, or in a
+    table written before that column (empty there) ``n_steps`` at ``budget``."""
+    from _table import _flag, _num
+
+    if r.get("out_of_steps") not in (None, ""):
+        return _flag(r["out_of_steps"])
+    return _num(r.get("n_steps")) >= budget
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     from redman_jax._report import THESIS_GRADIENT_SUCCESS
     from redman_jax._study import load_runs, run_sweep
 
-    from _table import _num, ablation_config, markdown, summarise, valid_runs
+    from _table import ablation_config, markdown, summarise, valid_runs
 
     register()
     cfg = ablation_config(args, VARIANTS, GRADIENT_CASES)
@@ -84,7 +94,7 @@ def main(argv=None) -> int:
     budget = out_of_steps_budget()
     spent = {}  # runs that used up the step budget (flagged diverged: the budget decided them)
     for r in valid_runs(rows):
-        if _num(r.get("n_steps")) >= budget:
+        if ran_out_of_steps(r, budget):
             spent[(r["case"], r["controller"])] = spent.get((r["case"], r["controller"]), 0) + 1
     lines = []
     for case in cases:

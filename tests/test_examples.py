@@ -252,11 +252,14 @@ def test_ablation_tables_from_a_finished_sweep(script, monkeypatch, tmp_path, ca
     cell = "| 0/3 |" if script == "ablation_jac_scaling" else "| 3/3 |"
     assert sum(line.startswith("| simple |") and cell in line for line in out.splitlines()) == len(mod.VARIANTS)
     if script == "ablation_obstacle_form":  # diverged runs, and of them those out of the step budget
+        # the out_of_steps column where a row has one, else n_steps at the budget (older tables)
         rows[0].update(success=False, diverged=True, n_steps=mod.out_of_steps_budget())
-        rows[1].update(success=False, diverged=True, n_steps=10)
+        rows[2].update(success=False, diverged=True, n_steps=mod.out_of_steps_budget(), out_of_steps=False)
+        rows[1].update(success=False, diverged=True, n_steps=10, out_of_steps=True)
+        rows[3].update(success=False, diverged=True, n_steps=10)
         assert mod.main(["--cases", "simple", "--seeds", "1", "--quiet", "--out", str(tmp_path)]) == 0
         lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| simple |")]
-        assert [ln.split(" | ")[4] for ln in lines] == ["1 (1)", "1 (0)"]
+        assert [ln.split(" | ")[4] for ln in lines] == ["2 (1)", "2 (1)"]
 
 
 def test_thesis_study_script_is_the_study_command(monkeypatch, tmp_path, capsys):
