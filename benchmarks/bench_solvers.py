@@ -47,7 +47,7 @@ def main():
           f"{'time ratio':>10s} {'metrics vs ' + solvers[0]:>17s} flags")
     totals = {s: [0, 0.0] for s in solvers}
     for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
-            arm, args.cases.split(","), args.controllers.split(","), seeds):
+            arm, args.cases.split(","), args.controllers.split(","), seeds, obs_d=args.obs_d):
         first = None
         for solver in solvers:
             p = SimParams(solver=solver)

@@ -24,7 +24,9 @@ from __future__ import annotations
 import argparse
 import time
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import redman_jax as rj
@@ -50,11 +52,20 @@ def max_rel_dev(a, b):
     return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-9)))
 
 
-def study_closed_loops(arm, cases, controllers, seeds):
+def with_policy_range(gains, obs_d=None):
+    """``gains`` with the null-space obstacle policy's range ``D`` [m] set to ``obs_d`` (gains
+    without a ``policy``, and ``obs_d`` None: unchanged)."""
+    if obs_d is None or not hasattr(gains, "policy"):
+        return gains
+    return eqx.tree_at(lambda g: g.policy.obs_D, gains, jnp.asarray(obs_d, jnp.result_type(float)))
+
+
+def study_closed_loops(arm, cases, controllers, seeds, obs_d=None):
     """``(case, name, controller, gains, scenarios, ik)`` for every case and controller of the study
     (``gradient`` on its cases only), the scenarios and IK from the study's ``build_case``
     (``ik`` None for controllers that need no joint reference); JAX's caches are cleared after
-    each case: each compiles its own programs, and keeping them all ran out of code mappings."""
+    each case: each compiles its own programs, and keeping them all ran out of code mappings.
+    ``obs_d``: the obstacle policy's range ``D`` instead of the gains' (:func:`with_policy_range`)."""
     for case in cases:
         built = build_case(arm, case, seeds)
         for name in controllers:
@@ -62,7 +73,7 @@ def study_closed_loops(arm, cases, controllers, seeds):
                 continue
             ctrl = CONTROLLERS[name]()
             ik = built["ik"] if ctrl.needs_joint_reference else None
-            yield case, name, ctrl, ctrl.default_gains(), built["scenarios"], ik
+            yield case, name, ctrl, with_policy_range(ctrl.default_gains(), obs_d), built["scenarios"], ik
         jax.clear_caches()
 
 
@@ -95,6 +106,10 @@ def study_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     ap.add_argument("--seeds", default="1-4")
     ap.add_argument("--cases", default=",".join(rj.CASES))
     ap.add_argument("--controllers", default="joint_space,velocity,acceleration,gradient")
+    ap.add_argument("--obs-d", type=float, default=None,
+                    help="the null-space obstacle policy's range D [m] instead of the gains' 0.75: "
+                         "its gradient jumps at D (SPEC E4), and each crossing costs rejected steps; "
+                         "a D beyond the scene is never crossed (another policy, not the study's)")
     return ap
 
 
@@ -119,7 +134,7 @@ def main():
     worst = {c: 0.0 for c in candidates}
     worst_mean = {c: 0.0 for c in candidates}
     for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
-            arm, args.cases.split(","), args.controllers.split(","), seeds):
+            arm, args.cases.split(","), args.controllers.split(","), seeds, obs_d=args.obs_d):
         runs = {}
         for i, (rtol, atol) in enumerate((REFERENCE,) + candidates):
             if i == 0:

@@ -64,3 +64,26 @@ def test_benchmark_runs_small(script):
     assert proc.returncode == 0, (f"{script} {' '.join(args)} exited {proc.returncode}\n"
                                   f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}")
     assert last in proc.stdout, f"{script}: {last!r} not printed\n{proc.stdout[-3000:]}"
+
+
+def test_obs_d_sets_the_obstacle_policys_range_only(monkeypatch):
+    """``--obs-d`` of the step and tolerance benchmarks (``bench_tolerance.with_policy_range``) sets
+    the null-space obstacle policy's range ``D`` in the gains and nothing else; no ``--obs-d``
+    leaves them as they are."""
+    import jax
+    import numpy as np
+
+    from redman_jax._controllers import CONTROLLERS
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from bench_tolerance import study_arguments, with_policy_range
+
+    assert study_arguments(__import__("argparse").ArgumentParser()).parse_args(
+        ["--obs-d", "5"]).obs_d == 5.0
+    for name in ("velocity", "acceleration", "gradient", "joint_space"):
+        g = CONTROLLERS[name]().default_gains()
+        h = with_policy_range(g, 5.0)
+        assert float(g.policy.obs_D) == 0.75 and float(h.policy.obs_D) == 5.0
+        diff = [not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(h))]
+        assert sum(diff) == 1, name
+        assert with_policy_range(g, None) is g
