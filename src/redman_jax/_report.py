@@ -557,7 +557,8 @@ def _claims_r2(d: StudyData) -> list[Claim]:
         out.append(Claim(cid, stmt, thesis, f"{k}/{n} ({100 * k / n:.0f} %)", _v(lo <= p_t <= hi), why))
     fails = [r for r in grows if run_cause(r) != "success"]
     n_coll = sum(run_cause(r) == "collision" for r in fails)
-    n_div = sum(run_cause(r) == "diverged" for r in fails)
+    diverged = [r for r in fails if run_cause(r) == "diverged"]
+    n_div = len(diverged)
     stmt = "Every gradient-guided failure is 'goal not reached'"
     if not fails:
         out.append(Claim("R2.d", stmt, "all failures not reached", "no failures", NOT_EVALUATED,
@@ -566,7 +567,7 @@ def _claims_r2(d: StudyData) -> list[Claim]:
         far = [_num(r.get("final_pos_error")) for r in fails]
         far = [x for x in far if math.isfinite(x)]
         why = (f"{len(fails) - n_coll - n_div} not reached, {n_coll} collided, {n_div} diverged"
-               + _out_of_steps_note([r for r in fails if run_cause(r) == "diverged"])
+               + _out_of_steps_note(diverged)
                + (f"; final distance of the failures median {np.median(far):.3f} m, max {max(far):.3f} m"
                   if far else ""))
         out.append(Claim("R2.d", stmt, "all failures not reached",
