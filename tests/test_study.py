@@ -282,11 +282,11 @@ def _config(out):
 
 def test_report_renders_in_a_process_with_the_workers_flags(monkeypatch, tmp_path):
     """``render_report`` (the sweep's figures and report, ``redman-jax plot``): on a CPU backend in
-    a spawned process whose ``XLA_FLAGS`` add the workers' flags (this process's are unchanged);
-    an error there is raised here."""
+    a spawned process whose ``XLA_FLAGS`` add the workers' emitter flags but not their loop
+    hoisting (this process's are unchanged); an error there is raised here."""
     import _fake_units
 
-    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts, render_report
+    from redman_jax._study import EMITTER_XLA_FLAGS, LOOP_XLA_FLAGS, _with_flags, _xla_accepts, render_report
 
     tests_dir = os.path.dirname(os.path.abspath(__file__))
     monkeypatch.setenv("PYTHONPATH", tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -294,8 +294,9 @@ def test_report_renders_in_a_process_with_the_workers_flags(monkeypatch, tmp_pat
     render_report(tmp_path, make=_fake_units.report_probe)
     pid, flags = (tmp_path / "probe.txt").read_text().split("\n")
     assert int(pid) != os.getpid() and os.environ.get("XLA_FLAGS", "") == before
-    want = _with_flags(before, WORKER_XLA_FLAGS)
+    want = _with_flags(before, EMITTER_XLA_FLAGS)
     assert flags == (want if _xla_accepts(want) else before)
+    assert not any(f in flags.split() for f in LOOP_XLA_FLAGS if f not in before.split())
     (tmp_path / "fail").touch()
     with pytest.raises(RuntimeError, match="the report failed"):
         render_report(tmp_path, make=_fake_units.report_probe)
@@ -880,3 +881,28 @@ def test_sweep_scripts_report_bad_options_in_one_line(script, args, message, tmp
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stderr[-2000:]
     assert f"{script}: error: {message}" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
+    """``LOOP_XLA_FLAGS`` take effect in this jaxlib: a while loop whose body (a dot among
+    element-wise work) reads more than XLA's default 1 kB threshold is compiled as one hoisted call
+    (``xla_cpu_small_call``) with the workers' flags and not with their emitter flags alone (a
+    jaxlib that drops or renames the option fails here, not silently in the study's speed). Each in
+    a fresh process, as a worker starts."""
+    from redman_jax._study import EMITTER_XLA_FLAGS, WORKER_XLA_FLAGS, _with_flags, _xla_accepts
+
+    if not _xla_accepts(_with_flags("", WORKER_XLA_FLAGS)):
+        pytest.skip("this jaxlib does not accept the workers' flags (the workers then start without them)")
+    code = ("import jax, jax.numpy as jnp\n"
+            "f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[1] < 100, "
+            "lambda c: (jnp.sin(c[0]) @ c[0] * 0.5, c[1] + 1), (x, 0))[0])\n"
+            "print('xla_cpu_small_call' in f.lower(jnp.ones((20, 20))).compile().as_text())\n")
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    seen = []
+    for extra in (EMITTER_XLA_FLAGS, WORKER_XLA_FLAGS):
+        env["XLA_FLAGS"] = _with_flags("", extra)
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        seen.append(done.stdout.split()[-1])
+    assert seen == ["False", "True"]

@@ -529,8 +529,9 @@ def render_report(out, make=None) -> None:
     """Write the figures and ``report.md`` of the results folder ``out``
     (:func:`~redman_jax._report.make_report`, or ``make(out)``, a picklable callable).
 
-    On a CPU backend in a spawned process started with the workers' XLA flags
-    (:data:`WORKER_XLA_FLAGS`), which compile faster: the report's figures rebuild scenes and
+    On a CPU backend in a spawned process started with the workers' emitter flags
+    (:data:`EMITTER_XLA_FLAGS`, not :data:`LOOP_XLA_FLAGS`: the report compiles much and runs
+    little), which compile faster: the report's figures rebuild scenes and
     re-simulate, compiling several programs. ``redman-jax plot`` on the results folder of a
     9-DOF sweep of the three tracking controllers (2 idle cores, two runs each, alternating):
     36.8 and 37.0 s so, 47.6 and 48.6 s with ``make_report`` in the calling process and JAX's own
@@ -548,7 +549,7 @@ def render_report(out, make=None) -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    with _worker_xla_flags(), ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+    with _worker_xla_flags(EMITTER_XLA_FLAGS), ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
         pool.submit(make, out).result()  # re-raises the report's error here
 
 
@@ -674,7 +675,7 @@ def _one_core_while_spawning(core):
         os.sched_setaffinity(0, before)
 
 
-# XLA flags the workers start with (each unless XLA_FLAGS names it already). Measured on one core,
+# XLA flags the workers and the report start with (each unless XLA_FLAGS names it already). Measured on one core,
 # as a worker runs (9-DOF simple case, 20 seeds, compile s / warm s, default -> these flags): joint
 # space 10.4 / 4.42 -> 6.3 / 3.58, acceleration 15.5 / 9.68 -> 8.1 / 7.80, velocity
 # -> 9.53 / 7.88 warm. The older (LLVM IR) loop emitters compile about twice as fast and, at these
@@ -699,7 +700,27 @@ def _one_core_while_spawning(core):
 # simulations, these two workers, idle machine, one run each) units 353.0 -> 361.2 s, of which
 # running 212.4 -> 207.3 s, wall 206 -> 212 s: no gain. And its dots round differently: the IK
 # validation kept other retry seeds for 5 of the 100 scenes and 6 of the 300 runs changed success.
-WORKER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
+EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimental_ynn_fusion_type=")
+
+# Besides, the workers hoist every while loop XLA can compile into one function (the CPU backend's
+# SmallWhileLoopHoistingPass, whose byte threshold is 1 kB by default): a simulation's stepping loop
+# then runs as one compiled function instead of a sequence of kernels (thunks) per step, which at
+# these batches (one core, 20 seeds) is most of a step's cost; LLVM's optimisation level 1 (of 3)
+# takes back about a third of the longer compilation of those large functions and ran as fast.
+# A loop holding a custom call, scatter, sort or custom fusion stays as it was: with YNNPACK's
+# fusions on (the emitter flags turn them off) every loop with a dot would.
+# Measured (one core each, side by side, 2 runs each with the cores swapped; units of the study on
+# its stored scenes): 7-DOF simple velocity OSC warm 6.6-8.4 -> 4.0-4.2 s, compiling 15.6-21.0 ->
+# 35.1-44.0 s with the hoisting alone, 24.0 s with level 1 too (warm 4.1 s); 8-DOF agriculture
+# gradient-guided warm 47.0/47.3 -> 20.5/21.6 s, compiling 32.4-32.8 -> 52.7-57.1 s, the unit
+# 81.2/83.9 -> 76.9/78.7 s with the hoisting alone (with level 1: 22.4, 54.7, 79.7 s). The 9-DOF sweep (5 builds, 18 simulations, 2 workers, one after the
+# other on an idle machine): 330 -> 281 s; units 612.8 -> 506.5 s, of which compiling 224.8 ->
+# 261.0 s. Rounding differs (other machine code), as with the emitter flags above.
+LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000",
+                  "--xla_backend_optimization_level=1")
+
+# What the sweep's workers (and a --jobs 1 sweep's own process) start with.
+WORKER_XLA_FLAGS = EMITTER_XLA_FLAGS + LOOP_XLA_FLAGS
 
 
 def _with_flags(flags: str, extra) -> str:
