@@ -469,7 +469,9 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
     one-process sweep, and a rerun computes nothing."""
     import _fake_units
 
-    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _worker_cores, _xla_accepts
+    from redman_jax._study import _with_flags, _worker_cores, _worker_flags, _xla_accepts
+
+    WORKER_XLA_FLAGS = _worker_flags()
 
     calls = []
     _fake_pipeline(monkeypatch, calls)
@@ -503,7 +505,8 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
         flags = [p.read_text().split() for p in affinity.glob("*.flags")]
         assert len(flags) == len(seen) and os.environ.get("XLA_FLAGS", "") == flags_before
         if _xla_accepts(_with_flags(flags_before, WORKER_XLA_FLAGS)):  # the workers' XLA flags
-            assert all(set(WORKER_XLA_FLAGS) <= set(f) for f in flags), flags
+            want = set(_with_flags(flags_before, WORKER_XLA_FLAGS).split())  # the user's own kept
+            assert all(want <= set(f) for f in flags), flags
         else:
             assert all(f == flags_before.split() for f in flags), flags
         assert len(seen) >= 2 and len(pools) == len(seen)  # a pool per phase, two workers each
@@ -847,7 +850,9 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
     """``prepare_sweep_process`` (the command line and the sweep scripts call it first): the
     workers' XLA flags, and for ``--jobs 1`` one core, so that the units this process computes
     round as a worker's; where JAX's backend already runs it changes nothing."""
-    from redman_jax._study import WORKER_XLA_FLAGS, _with_flags, _xla_accepts, prepare_sweep_process
+    from redman_jax._study import _with_flags, _worker_flags, _xla_accepts, prepare_sweep_process
+
+    WORKER_XLA_FLAGS = _worker_flags()
 
     code = ("import os, sys; from redman_jax._study import prepare_sweep_process; "
             "prepare_sweep_process(sys.argv[1]); import jax.numpy as j; j.zeros(1).block_until_ready(); "
@@ -861,7 +866,7 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
         n, flags = done.stdout.splitlines()[-2:]
         assert int(n) == want
         if _xla_accepts(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)):
-            assert set(WORKER_XLA_FLAGS) <= set(flags.split())
+            assert set(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS).split()) <= set(flags.split())
     import jax.numpy as jnp
 
     jnp.zeros(1).block_until_ready()  # this process's backend runs: nothing changes
@@ -906,3 +911,28 @@ def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
         assert done.returncode == 0, done.stderr[-2000:]
         seen.append(done.stdout.split()[-1])
     assert seen == ["False", "True"]
+
+
+def test_the_loop_flags_are_for_a_cpu_backend_only(monkeypatch):
+    """The workers' loop flags (LLVM's level is an accelerator backend's too) only where JAX will
+    run on the CPU: ``JAX_PLATFORMS``' first entry if set, else no accelerator plugin installed."""
+    import importlib.util
+
+    from redman_jax import _study
+
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda,cpu")
+    assert _study._worker_flags() == _study.EMITTER_XLA_FLAGS
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert _study._worker_flags() == _study.WORKER_XLA_FLAGS
+    monkeypatch.delenv("JAX_PLATFORMS")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in _study._ACCELERATOR_PLUGINS
+                        else real(name, *a))
+    assert _study._cpu_backend_expected()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: object() if name == "jax_cuda12_plugin"
+                        else None)
+    assert not _study._cpu_backend_expected()
+    monkeypatch.setattr(_study, "_xla_accepts", lambda flags: True)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    with _study._worker_xla_flags():  # what spawned workers inherit
+        assert os.environ["XLA_FLAGS"] == _study._with_flags("", _study.EMITTER_XLA_FLAGS)

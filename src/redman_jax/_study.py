@@ -719,8 +719,37 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000",
                   "--xla_backend_optimization_level=1")
 
-# What the sweep's workers (and a --jobs 1 sweep's own process) start with.
+# What the sweep's workers (and a --jobs 1 sweep's own process) start with on a CPU machine
+# (:func:`_worker_flags`: the loop flags only where the backend will be the CPU; LLVM's level is
+# also an accelerator backend's).
 WORKER_XLA_FLAGS = EMITTER_XLA_FLAGS + LOOP_XLA_FLAGS
+
+_ACCELERATOR_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_plugins.xla_cuda12",
+                        "jax_plugins.xla_cuda13", "jax_rocm60_plugin", "jax_rocm7_plugin",
+                        "jax_plugins.xla_rocm60", "jax_plugins.xla_rocm7", "libtpu")
+
+
+def _cpu_backend_expected() -> bool:
+    """Whether JAX will run on the CPU, told before its backend starts: ``JAX_PLATFORMS`` if set
+    (its first entry), else whether no accelerator plugin (CUDA, ROCm, TPU) is installed."""
+    import importlib.util
+    import os
+
+    platforms = os.environ.get("JAX_PLATFORMS", "").strip()
+    if platforms:
+        return platforms.split(",")[0].strip() == "cpu"
+    for name in _ACCELERATOR_PLUGINS:
+        try:
+            if importlib.util.find_spec(name) is not None:
+                return False
+        except (ImportError, ValueError):
+            continue
+    return True
+
+
+def _worker_flags() -> tuple:
+    """:data:`WORKER_XLA_FLAGS` where the backend will be the CPU, else the emitter flags alone."""
+    return WORKER_XLA_FLAGS if _cpu_backend_expected() else EMITTER_XLA_FLAGS
 
 
 def _with_flags(flags: str, extra) -> str:
@@ -746,7 +775,7 @@ def _xla_accepts(flags: str) -> bool:
     return done.returncode == 0
 
 
-def adopt_worker_xla_flags(extra=WORKER_XLA_FLAGS) -> bool:
+def adopt_worker_xla_flags(extra=None) -> bool:
     """Give this process the workers' XLA flags, if its XLA backend has not started yet (the
     command line calls this first): the units it computes itself (``--jobs 1``, a distributed
     sweep) then round as the workers' do, so a table does not depend on ``--jobs`` or on how a
@@ -756,7 +785,7 @@ def adopt_worker_xla_flags(extra=WORKER_XLA_FLAGS) -> bool:
 
     started = _backend_started()
     before = os.environ.get("XLA_FLAGS", "")
-    flags = _with_flags(before, extra)
+    flags = _with_flags(before, _worker_flags() if extra is None else extra)
     if started or flags == before or not _xla_accepts(flags):
         return False
     os.environ["XLA_FLAGS"] = flags
@@ -802,14 +831,14 @@ def prepare_sweep_process(jobs, distributed: bool = False) -> None:
 
 
 @contextlib.contextmanager
-def _worker_xla_flags(extra=WORKER_XLA_FLAGS):
+def _worker_xla_flags(extra=None):
     """Run the body with ``XLA_FLAGS`` extended by ``extra`` in this process's environment, which
     the workers spawned meanwhile inherit (this process's backend has started; it is unaffected);
     unchanged if this jaxlib does not accept them. Restored afterwards."""
     import os
 
     before = os.environ.get("XLA_FLAGS")
-    flags = _with_flags(before or "", extra)
+    flags = _with_flags(before or "", _worker_flags() if extra is None else extra)
     if flags != (before or "") and _xla_accepts(flags):
         os.environ["XLA_FLAGS"] = flags
     try:
