@@ -19,8 +19,9 @@ What is compared, per case and controller (scenarios and IK joint references fro
   device runs without the contention of two programs on one device). *Cold* is the first call
   (tracing + compilation + run), *warm* the second call.
   ``--xla-flags study`` starts JAX with the XLA flags the study's workers use
-  (``redman_jax._study.WORKER_XLA_FLAGS``: XLA's older CPU loop emitters, no YNNPACK fusions), as
-  ``make run`` simulates; the default is JAX's own flags.
+  (``redman_jax._study.WORKER_XLA_FLAGS``: XLA's older CPU loop emitters, no YNNPACK fusions, and
+  every while loop XLA can hoist compiled as one function at LLVM level 1), as ``make run``
+  simulates; the default is JAX's own flags.
 * **NumPy + SciPy**: the closed loop re-implemented below in plain NumPy (nothing jitted, no JAX
   call inside the vector field): forward kinematics, Jacobians, ``J_dot q_dot``, mass matrix and
   Newton-Euler bias forces, joint-limit contact (3.6), points of interest and their Jacobians,
