@@ -26,8 +26,9 @@ What is compared, per case and controller (scenarios and IK joint references fro
   call inside the vector field): forward kinematics, Jacobians, ``J_dot q_dot``, mass matrix and
   Newton-Euler bias forces, joint-limit contact (3.6), points of interest and their Jacobians,
   obstacle signed distances and potential-field gradients, the null-space policies (3.33-3.36),
-  the adaptive damped pseudo-inverse (3.29-3.32) and the three tracking controllers
-  ``joint_space``, ``velocity`` and ``acceleration`` with their default (thesis) gains.
+  the adaptive damped pseudo-inverse (3.29-3.32), the three tracking controllers
+  ``joint_space``, ``velocity`` and ``acceleration`` and the gradient-guided one (guidance field
+  with its virtual obstacles, 3.18-3.28) with their default (thesis) gains.
   Integrated with ``scipy.integrate.solve_ivp`` (DOP853, same rtol/atol) once per reference
   sample, one seed at a time, as the thesis called ``ode113`` per sample; every call picks its own
   first step. ``tests/test_numpy_baseline.py`` checks that this NumPy vector field equals the
@@ -39,10 +40,13 @@ What is compared, per case and controller (scenarios and IK joint references fro
 * The collision and joint-limit flags of the NumPy loop are evaluated at every vector-field call
   (same work as JAX) but latched as booleans instead of integrated (they never enter the error
   norm, as in JAX).
-* The gradient-guided controller (cases agriculture, warehouse, simple, as in the study;
+* The gradient-guided controller (cases agriculture, warehouse, simple, as in the study): JAX runs
   one adaptive loop over its 6 s horizon with the local-minima estimator updating between steps
-  at the sample ends, ``_sim._solve_guided_stepper``) is timed on the JAX
-  side only: its estimator and guidance field have no NumPy version here.
+  at the sample ends (``_sim._solve_guided_stepper``); the NumPy side (:class:`NumpyGuidedLoop`)
+  runs ``solve_ivp`` per sample as above, the estimator (3.24, its Hessian by central differences
+  of the analytic field gradient) and the orientation latch at each sample start, and the stop
+  rule at each sample end. Its first ``--scipy-samples`` samples are timed against the JAX
+  batch's simulated seconds up to each member's stop.
 
 Reported: simulated seconds per wall second (valid samples only, summed over seeds),
 vector-field evaluations per simulated second (JAX: ``1 + 6 steps + (n - 1)`` per member for the
@@ -77,7 +81,7 @@ from redman_jax._robot import thesis_arm
 from redman_jax._scenario import CASES
 from redman_jax._sim import SimParams, joint_reference, simulate, simulate_batch, tolerances
 
-NUMPY_CONTROLLERS = ("joint_space", "velocity", "acceleration")
+NUMPY_CONTROLLERS = ("joint_space", "velocity", "acceleration")  # tracking; NP_CONTROLLERS adds gradient
 GRADIENT_CASES = ("agriculture", "warehouse", "simple")  # the study runs "gradient" on these only
 BIG_DISTANCE = 1e3
 
@@ -426,7 +430,46 @@ def np_acceleration(g, na, ps, z, rs, obs):
     return ps.M @ qdd_r + ps.h, None
 
 
-NP_CONTROLLERS = {"joint_space": np_joint_space, "velocity": np_velocity, "acceleration": np_acceleration}
+RHO_FLOOR = 1e-6  # redman_jax._fields.RHO_FLOOR
+
+
+def total_gradient(x, env, obs: NumpyObstacles, fp, A=None):
+    """Gradient of the guidance field at ``x`` (3.23): goal ``2 (x - x_g)``, obstacles (``fp.a``,
+    ``fp.D``, form, clamp) and the active virtual obstacles' cones ``-A d / (rho (rho + 1)^2)``
+    within ``d_v``, ``A = amp |x - x_g|^2`` (``vo_amp="ee"``), or ``A`` as given: the Hessian holds
+    it constant (U4)."""
+    e = x - env.goal_p
+    g = 2.0 * e + obs.gradients(x[None], fp.a, fp.D, fp.form, fp.clamp)[0]
+    if len(env.virtual_p):
+        A = fp.amp * (e @ e) if A is None else A
+        d = x[None, :] - env.virtual_p
+        rho = np.sqrt(np.sum(d * d, axis=1))
+        coef = np.where(rho <= fp.d_v, -A / (np.maximum(rho, RHO_FLOOR) * (rho + 1.0) ** 2), 0.0)
+        g = g + coef @ d
+    return g
+
+
+def np_gradient(g, na, ps, z, rs, obs):
+    """GradientGuided: ``xd_g = -a tanh(|x - x_g|/b) grad V/|grad V|`` at the end effector,
+    ``xdd_r = [K_d (xd_g - pd); -K_dr w + K_pr clip(e_o)]``, then as the acceleration OSC."""
+    pg = g.policy
+    J, p, quat = _osc_frame(ps)
+    J_s, m, S = task_jacobian(J, rs.rot, g.s_trans, g.s_rot)
+    xd = J @ ps.qd
+    gr = total_gradient(p, rs, obs, g.field)
+    e = p - rs.goal_p
+    xd_g = -g.guide_a * np.tanh(np.sqrt(e @ e) / g.guide_b) * gr / (np.sqrt(gr @ gr) + 1e-9)
+    e_o = clip_norm(quat_error(rs.quat, quat), g.rot_clip)
+    xdd_r = np.concatenate([g.kd * (xd_g - xd[:3]), -g.kdr * xd[3:] + g.kpr * e_o])
+    b = np.where(m, xdd_r - S * jdot_qdot(ps), 0.0)
+    lam = damping_factor(J_s, m, pg.lam_ratio, pg.lam_floor)
+    h = pg.alpha * nullspace_policy(na, ps, obs, pg)
+    X = damped_solve(J_s, np.stack([b, J_s @ h], axis=1), lam)
+    return ps.M @ (X[:, 0] + h - X[:, 1]) + ps.h, None
+
+
+NP_CONTROLLERS = {"joint_space": np_joint_space, "velocity": np_velocity, "acceleration": np_acceleration,
+                  "gradient": np_gradient}
 
 
 def numpy_gains(gains):
@@ -434,7 +477,8 @@ def numpy_gains(gains):
     out = {}
     for f in dataclasses.fields(gains):
         v = getattr(gains, f.name)
-        out[f.name] = numpy_gains(v) if dataclasses.is_dataclass(v) else (v if isinstance(v, str) else float(v))
+        out[f.name] = (numpy_gains(v) if dataclasses.is_dataclass(v) else
+                       v if isinstance(v, (str, bool)) else float(v))
     return SimpleNamespace(**out)
 
 
@@ -508,6 +552,80 @@ class NumpyLoop:
                 raise RuntimeError(f"solve_ivp failed in sample {k}: {sol.message}")
             y = sol.y[:, -1]
             ys.append(y)
+        return np.stack(ys)
+
+
+class NumpyGuidedLoop(NumpyLoop):
+    """``_sim._simulate_guided`` (``mode="per_sample"``) in NumPy: at each sample start the
+    local-minima estimator (3.24: one Newton step ``x - (H + mu I)^-1 g`` at the end effector, ``H``
+    by central differences of the analytic gradient, as a MATLAB script would take it) pushes its
+    estimate into the 20-slot virtual-obstacle buffer if finite and within ``lme_max_jump``, and the
+    orientation latch switches on within ``guidance_rot_radius`` of the goal; the sample is held at
+    the goal pose at rest; the run stops once the end effector has been within ``goal_radius`` at
+    ``hold_samples`` consecutive sample ends, or after ``guidance_samples``."""
+
+    def __init__(self, na: NumpyArm, gains, scenario, params):
+        self.na, self.name = na, "gradient"
+        self.ctrl = np_gradient
+        self.g = numpy_gains(gains)
+        if self.g.field.vo_amp != "ee" or self.g.field.amp_exact:
+            raise ValueError("NumpyGuidedLoop: the default guidance field only (vo_amp='ee', amp_exact=False)")
+        self.obs = NumpyObstacles(scenario.obstacles)
+        self.goal_p = np.asarray(scenario.goal_p, float)
+        self.goal_quat = np.asarray(scenario.goal_quat, float)
+        self.ts = float(np.asarray(scenario.reference.ts))
+        self.n_samples = int(params.guidance_samples)
+        self.p = SimpleNamespace(**{k: float(getattr(params, k)) for k in
+                                    ("lme_mu", "lme_max_jump", "guidance_rot_radius", "goal_radius")},
+                                 hold=int(params.hold_samples), B=int(params.buffer_size))
+        self.has_z = False
+        self.collided = self.outside = False
+        self.nfev = 0
+
+    def env(self, vp, rot):
+        n = self.na.n
+        return SimpleNamespace(goal_p=self.goal_p, virtual_p=np.asarray(vp).reshape(-1, 3), p=self.goal_p,
+                               v=np.zeros(3), a=np.zeros(3), quat=self.goal_quat, omega=np.zeros(3),
+                               omega_dot=np.zeros(3), rot=rot, q=np.zeros(n), qd=np.zeros(n),
+                               qdd=np.zeros(n))
+
+    def estimate(self, x, vp, h=1e-6):
+        """``(x_min, valid)`` of 3.24 at ``x`` with the virtual obstacles ``vp``."""
+        env, fp = self.env(vp, 0.0), self.g.field
+        g = total_gradient(x, env, self.obs, fp)
+        A = fp.amp * float((x - self.goal_p) @ (x - self.goal_p))  # held constant in H (U4)
+        H = np.empty((3, 3))
+        for j in range(3):
+            dx = np.zeros(3)
+            dx[j] = h
+            H[:, j] = (total_gradient(x + dx, env, self.obs, fp, A) - total_gradient(x - dx, env, self.obs, fp, A)) / (2 * h)
+        with np.errstate(all="ignore"):
+            x_min = x - np.linalg.solve(H + self.p.lme_mu * np.eye(3), g)
+        valid = bool(np.all(np.isfinite(x_min)) and np.linalg.norm(x_min - x) <= self.p.lme_max_jump)
+        return (x_min if np.all(np.isfinite(x_min)) else x), valid
+
+    def run(self, n_samples=None, rtol=1e-5, atol=1e-7, method="DOP853"):
+        """Integrate the first ``n_samples`` samples (or up to the stop rule), one ``solve_ivp`` call
+        each; returns the states at the sample ends ``(samples run, len(y))``."""
+        ns = self.n_samples if n_samples is None else min(n_samples, self.n_samples)
+        n = self.na.n
+        y, ys, vp, rot, hold = self.y0(), [], [], 0.0, 0
+        for k in range(ns):
+            x = self.na.fk(y[:n])[1][:3, 3]
+            x_min, valid = self.estimate(x, vp)
+            if valid:
+                vp = (vp + [x_min])[-self.p.B:]  # FIFO: the oldest estimate overwritten when full
+            if np.linalg.norm(x - self.goal_p) < self.p.guidance_rot_radius:
+                rot = 1.0
+            sol = solve_ivp(self.field, (k * self.ts, (k + 1) * self.ts), y, method=method, rtol=rtol,
+                            atol=atol, args=(self.env(vp, rot),))
+            if sol.status < 0:
+                raise RuntimeError(f"solve_ivp failed in sample {k}: {sol.message}")
+            y = sol.y[:, -1]
+            ys.append(y)
+            hold = hold + 1 if np.linalg.norm(self.na.fk(y[:n])[1][:3, 3] - self.goal_p) < self.p.goal_radius else 0
+            if hold >= self.p.hold:
+                break
         return np.stack(ys)
 
 
@@ -709,12 +827,16 @@ def main(argv=None):
                 fe, dq = 0, 0.0
                 c = CONTROLLERS[name]()
                 for i in range(min(args.scipy_seeds, len(seeds))):
-                    loop = NumpyLoop(na, name, c.default_gains(), _take(scen, i),
-                                     _take(ik, i) if c.needs_joint_reference else None)
+                    if gradient:
+                        loop = NumpyGuidedLoop(na, c.default_gains(), _take(scen, i), params)
+                    else:
+                        loop = NumpyLoop(na, name, c.default_gains(), _take(scen, i),
+                                         _take(ik, i) if c.needs_joint_reference else None)
                     ns = loop.n_samples if K <= 0 else min(K, loop.n_samples)
                     t0 = time.perf_counter()
                     ys = loop.run(ns, rtol, atol, args.method)
                     t_np += time.perf_counter() - t0
+                    ns = len(ys)  # a gradient-guided run may stop earlier (its stop rule)
                     T_np += ns * ts
                     fe += loop.nfev
                     dq = max(dq, float(np.abs(ys[:, :na.n] - np.asarray(res.q[i, :ns])).max()))

@@ -10,6 +10,8 @@ and off, and some joints beyond their limits:
 * the NumPy torque and ``dz`` of ``joint_space``, ``velocity`` and ``acceleration`` equal
   ``CONTROLLERS[name]()(gains, arm, ControlState, RefSample, env)`` to ~1e-9 relative;
 * the NumPy closed-loop state derivative equals ``redman_jax._sim._closed_loop``;
+* the gradient-guided controller and closed loop too, with virtual obstacles in and out of range,
+  and the NumPy local-minima estimate equals ``estimate_local_minimum``;
 * the held reference sample of the NumPy loop equals ``_sim._ref_sample`` (joint-space rows
   included, also past the last sample).
 """
@@ -176,3 +178,51 @@ def test_batch_use_counts_the_iterations_of_each_chunk():
         for R in (3, 7, 20):
             steps = list(rng.integers(1, 40, R))
             assert B.batch_use(steps, chunks) == pytest.approx(counted(steps, chunks))
+
+
+def test_gradient_guided_controller_field_and_estimator_match_jax(scenes):
+    """The NumPy gradient-guided controller (guidance field with virtual obstacles, orientation
+    latch on and off) and its closed loop equal ``GradientGuided`` and ``_closed_loop`` to ~1e-9
+    relative; the loop's local-minima estimate (Hessian by central differences) equals
+    ``estimate_local_minimum`` (Hessian by ``jacfwd``) to 1e-6 m where valid, and both reject the
+    same steps."""
+    from redman_jax._guidance import estimate_local_minimum
+    from redman_jax._sim import _goal_sample
+
+    ctrl = CONTROLLERS["gradient"]()
+    gains = ctrl.default_gains()
+    params = SimParams()
+    worst_tau = worst_f = worst_est = 0.0
+    n_virtual = n_valid = 0
+    for si, sc in enumerate(scenes):
+        loop = B.NumpyGuidedLoop(NA, gains, sc, params)
+        rng = np.random.default_rng(40 + si)
+        for i, (q, qd, _, _) in enumerate(_states(sc, 20 + si)):
+            x = NA.fk(q)[1][:3, 3]
+            # virtual obstacles: some within d_v = 0.25 m of the end effector, some beyond, two slots empty
+            vp = x + rng.normal(0.0, 0.2, (params.buffer_size - 2, 3))
+            mask = np.arange(params.buffer_size) < params.buffer_size - 2
+            vp_full = np.concatenate([vp, np.zeros((2, 3))])
+            n_virtual += int(np.sum(np.linalg.norm(vp - x, axis=1) <= 0.25))
+            env = make_environment(sc.obstacles, sc.goal_p, sc.goal_quat, params.buffer_size)
+            env = eqx.tree_at(lambda e: (e.virtual_p, e.virtual_mask), env, (jnp.asarray(vp_full), jnp.asarray(mask)))
+            rot = float(i % 2)
+            rs = _goal_sample(sc.goal_p, sc.goal_quat, rot, N, jnp.float64)
+            out = _jax_controller(ctrl, gains, jnp.asarray(q), jnp.asarray(qd), (), rs, env)
+            tau, _ = B.np_gradient(loop.g, NA, B.state_pass(NA, q, qd), None, loop.env(list(vp), rot), loop.obs)
+            worst_tau = max(worst_tau, _rel(tau, out.tau))
+            dy = _jax_field(ctrl, gains, jnp.asarray(q), jnp.asarray(qd), jnp.zeros((0,)), rs, env)
+            f_np = loop.field(0.0, np.concatenate([q, qd]), loop.env(list(vp), rot))
+            worst_f = max(worst_f, _rel(f_np, np.concatenate([np.asarray(dy.q), np.asarray(dy.qd)])))
+            for xx in (x, np.asarray(sc.goal_p) + rng.normal(0.0, 0.1, 3)):
+                x_min, ok = loop.estimate(xx, list(vp))
+                j_min, j_ok = estimate_local_minimum(jnp.asarray(xx), sc.goal_p, sc.obstacles, jnp.asarray(vp_full),
+                                                     jnp.asarray(mask), gains.field, params.lme_mu, params.lme_max_jump)
+                assert ok == bool(j_ok)
+                if ok:  # a rejected step (beyond lme_max_jump, near a singular H) is not pushed
+                    n_valid += 1
+                    worst_est = max(worst_est, float(np.abs(x_min - np.asarray(j_min)).max()))
+    assert n_virtual > 0 and n_valid >= 10  # virtual obstacles in range; estimates compared
+    assert worst_tau < RTOL, worst_tau
+    assert worst_f < RTOL, worst_f
+    assert worst_est < 1e-6, worst_est
