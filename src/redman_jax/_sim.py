@@ -62,7 +62,11 @@ warehouse (seeds 1-2), every success, collision and joint-limit flag equal (insp
 not re-measured); with Tsit5 (the guided runs' solver, and the earlier default) at most 1.5e-4 in
 inspection and welding, 3.4e-5 in warehouse for the tracking controllers, 3.6e-3 for the
 agriculture velocity OSC, and 7.3e-3 / 1.4e-2 for the gradient-guided final position in warehouse /
-agriculture (its stop rule moves by a sample). Looser tolerances do not pay off: at rtol 1e-4 /
+agriculture (its stop rule moves by a sample). Remeasured for the gradient-guided runs at a291e76
+(``--controllers gradient --cases agriculture,warehouse,simple``, seeds 1-4): the final position
+deviates per seed by up to 3.9e-2 / 7.9e-2 / 4.9e-3 (agriculture / warehouse / simple), its mean
+over the seeds by 4.4e-3 / 6.3e-3 / 4.2e-4; the mean position and orientation errors by at most
+2.7e-3 per seed; every flag equal. Looser tolerances do not pay off: at rtol 1e-4 /
 atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint space and velocity OSC take more steps, not
 fewer (simple 3,739 / 3,786 against 2,787 / 3,557; welding joint space 4,589 against 2,983), and
 only the acceleration OSC fewer (simple 1,933 against 3,437). The warehouse acceleration reference needs
