@@ -66,7 +66,11 @@ agriculture (its stop rule moves by a sample). Remeasured for the gradient-guide
 (``--controllers gradient --cases agriculture,warehouse,simple``, seeds 1-4): the final position
 deviates per seed by up to 3.9e-2 / 7.9e-2 / 4.9e-3 (agriculture / warehouse / simple), its mean
 over the seeds by 4.4e-3 / 6.3e-3 / 4.2e-4; the mean position and orientation errors by at most
-2.7e-3 per seed; every flag equal. Looser tolerances do not pay off: at rtol 1e-4 /
+2.7e-3 per seed; every flag equal. On all 20 seeds of 9-DOF agriculture (the same day) the
+velocity OSC stays within 3.1e-4 per seed (5.0e-6 over the seed means), but the acceleration OSC
+deviates by up to 3.3e-1 per seed (final position; 2.0e-1 orientation) and 1.9e-2 over the seed
+means, and a flag differs: at the default tolerances that cell misses the issue's 1 % (the run
+of seed 14 above is one of its sensitive runs). Looser tolerances do not pay off: at rtol 1e-4 /
 atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint space and velocity OSC take more steps, not
 fewer (simple 3,739 / 3,786 against 2,787 / 3,557; welding joint space 4,589 against 2,983), and
 only the acceleration OSC fewer (simple 1,933 against 3,437). The warehouse acceleration reference needs
