@@ -415,19 +415,23 @@ def np_velocity(g, na, ps, z, rs, obs):
 def np_acceleration(g, na, ps, z, rs, obs):
     """AccelerationOSC: ``qdd_r = alpha h + J_s^T Y^-1 (b - alpha J_s h)`` with
     ``b = xdd_r - S J_dot q_dot`` on the active rows, ``tau = M qdd_r + c + g``."""
-    pg = g.policy
     J, p, quat = _osc_frame(ps)
     J_s, m, S = task_jacobian(J, rs.rot, g.s_trans, g.s_rot)
     xd = J @ ps.qd
     e_o = clip_norm(quat_error(rs.quat, quat), g.rot_clip)
     xdd_r = np.concatenate([rs.a + g.kd * (rs.v - xd[:3]) + g.kp * (rs.p - p),
                             rs.omega_dot + g.kdr * (rs.omega - xd[3:]) + g.kpr * e_o])
-    b = np.where(m, xdd_r - S * jdot_qdot(ps), 0.0)
+    return _acc_torque(g, na, ps, obs, J_s, m, np.where(m, xdd_r - S * jdot_qdot(ps), 0.0)), None
+
+
+def _acc_torque(g, na, ps, obs, J_s, m, b):
+    """``M (J# b + alpha N h) + c + g`` for the task acceleration ``b`` (already minus
+    ``S J_dot q_dot``): the acceleration-level command of the acceleration and gradient-guided OSC."""
+    pg = g.policy
     lam = damping_factor(J_s, m, pg.lam_ratio, pg.lam_floor)
     h = pg.alpha * nullspace_policy(na, ps, obs, pg)
     X = damped_solve(J_s, np.stack([b, J_s @ h], axis=1), lam)
-    qdd_r = X[:, 0] + h - X[:, 1]
-    return ps.M @ qdd_r + ps.h, None
+    return ps.M @ (X[:, 0] + h - X[:, 1]) + ps.h
 
 
 RHO_FLOOR = 1e-6  # redman_jax._fields.RHO_FLOOR
@@ -452,7 +456,6 @@ def total_gradient(x, env, obs: NumpyObstacles, fp, A=None):
 def np_gradient(g, na, ps, z, rs, obs):
     """GradientGuided: ``xd_g = -a tanh(|x - x_g|/b) grad V/|grad V|`` at the end effector,
     ``xdd_r = [K_d (xd_g - pd); -K_dr w + K_pr clip(e_o)]``, then as the acceleration OSC."""
-    pg = g.policy
     J, p, quat = _osc_frame(ps)
     J_s, m, S = task_jacobian(J, rs.rot, g.s_trans, g.s_rot)
     xd = J @ ps.qd
@@ -461,11 +464,7 @@ def np_gradient(g, na, ps, z, rs, obs):
     xd_g = -g.guide_a * np.tanh(np.sqrt(e @ e) / g.guide_b) * gr / (np.sqrt(gr @ gr) + 1e-9)
     e_o = clip_norm(quat_error(rs.quat, quat), g.rot_clip)
     xdd_r = np.concatenate([g.kd * (xd_g - xd[:3]), -g.kdr * xd[3:] + g.kpr * e_o])
-    b = np.where(m, xdd_r - S * jdot_qdot(ps), 0.0)
-    lam = damping_factor(J_s, m, pg.lam_ratio, pg.lam_floor)
-    h = pg.alpha * nullspace_policy(na, ps, obs, pg)
-    X = damped_solve(J_s, np.stack([b, J_s @ h], axis=1), lam)
-    return ps.M @ (X[:, 0] + h - X[:, 1]) + ps.h, None
+    return _acc_torque(g, na, ps, obs, J_s, m, np.where(m, xdd_r - S * jdot_qdot(ps), 0.0)), None
 
 
 NP_CONTROLLERS = {"joint_space": np_joint_space, "velocity": np_velocity, "acceleration": np_acceleration,
@@ -610,8 +609,8 @@ class NumpyGuidedLoop(NumpyLoop):
         ns = self.n_samples if n_samples is None else min(n_samples, self.n_samples)
         n = self.na.n
         y, ys, vp, rot, hold = self.y0(), [], [], 0.0, 0
+        x = self.na.fk(y[:n])[1][:3, 3]  # the end effector at the sample start
         for k in range(ns):
-            x = self.na.fk(y[:n])[1][:3, 3]
             x_min, valid = self.estimate(x, vp)
             if valid:
                 vp = (vp + [x_min])[-self.p.B:]  # FIFO: the oldest estimate overwritten when full
@@ -623,7 +622,8 @@ class NumpyGuidedLoop(NumpyLoop):
                 raise RuntimeError(f"solve_ivp failed in sample {k}: {sol.message}")
             y = sol.y[:, -1]
             ys.append(y)
-            hold = hold + 1 if np.linalg.norm(self.na.fk(y[:n])[1][:3, 3] - self.goal_p) < self.p.goal_radius else 0
+            x = self.na.fk(y[:n])[1][:3, 3]  # at the sample end: the stop rule, then the next start
+            hold = hold + 1 if np.linalg.norm(x - self.goal_p) < self.p.goal_radius else 0
             if hold >= self.p.hold:
                 break
         return np.stack(ys)
