@@ -5,9 +5,10 @@ For every case and controller of the study on one arm, the same validated scenar
 at rtol 1e-9 / atol 1e-11 (reference) and at candidate tolerances; printed per row: integration
 steps (the batch maximum), wall time and the largest relative deviation over the seeds of
 each metric the study reports (mean position error, mean orientation error, final position error),
-plus the relative deviation of the seed means (what the study's tables report), and whether
-success / collision / joint-limit flags agree seed by seed. Wall times are of one call each (the
-reference's and the first candidate's include their compilations).
+plus the relative deviation of the seed means, whether success / collision / joint-limit flags
+agree seed by seed, and what the study's headline table reports of the cell: its failed runs (the
+count) and the relative deviation of the mean position error over the successful runs. Wall times
+are of one call each (the reference's and the first candidate's include their compilations).
 
 ``--solver`` picks the candidates' solver (default the simulator's ``auto``); the reference is always
 Tsit5 at rtol 1e-9 / atol 1e-11, so a candidate solver is checked against another method.
@@ -100,6 +101,21 @@ def _rel_mean(a, b):
     return max_rel_dev(np.mean(np.asarray(a, float)), np.mean(np.asarray(b, float)))
 
 
+def table_metrics(m) -> tuple[int, float]:
+    """What the study's headline table reports of a cell: ``(failed runs, mean position error over
+    the successful runs)`` (NaN where none succeeded)."""
+    ok = np.asarray(m.success, bool)
+    err = np.asarray(m.mean_pos_err, float)
+    return int(np.sum(~ok)), float(np.mean(err[ok])) if ok.any() else float("nan")
+
+
+def table_deviation(m, ref) -> tuple[bool, float]:
+    """``(same failure count, relative deviation of the mean error over successes)`` from ``ref``."""
+    (f, e), (fr, er) = table_metrics(m), table_metrics(ref)
+    dev = 0.0 if np.isnan(e) and np.isnan(er) else max_rel_dev(e, er)
+    return f == fr, dev
+
+
 def study_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options that pick the runs of :func:`study_closed_loops`: arm, seeds, cases, controllers."""
     ap.add_argument("--dof", type=int, default=9)
@@ -130,9 +146,12 @@ def main():
           f"{' in float32' if args.float32 else ''}; "
           f"reference tsit5 rtol/atol {REFERENCE[0]:.0e}/{REFERENCE[1]:.0e}")
     print(f"{'case':12s} {'controller':13s} {'rtol/atol':>11s} {'steps':>7s} {'wall s':>7s} "
-          f"{'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} | seed means: {'pos':>8s} {'ori':>8s} {'final':>8s} flags")
+          f"{'mean_pos':>9s} {'mean_ori':>9s} {'final':>9s} | seed means: {'pos':>8s} {'ori':>8s} {'final':>8s} flags"
+          f" | table: {'failed':>6s} {'error':>8s}")
     worst = {c: 0.0 for c in candidates}
     worst_mean = {c: 0.0 for c in candidates}
+    worst_table = {c: 0.0 for c in candidates}
+    counts_equal = {c: True for c in candidates}
     for case, name, ctrl, gains, scen, ikarg in study_closed_loops(
             arm, args.cases.split(","), args.controllers.split(","), seeds, obs_d=args.obs_d):
         runs = {}
@@ -155,17 +174,23 @@ def main():
             m = res.metrics
             devs, flags = compare(m, ref)
             mdevs = tuple(_rel_mean(getattr(m, f), getattr(ref, f)) for f in METRICS)
+            same_count, tdev = table_deviation(m, ref)
             if key in worst and ref_ok:
                 worst[key] = max(worst[key], *devs)
                 worst_mean[key] = max(worst_mean[key], *mdevs)
+                worst_table[key] = max(worst_table[key], tdev)
+                counts_equal[key] &= same_count
             tol = "reference" if key == "ref" else f"{key[0]:.0e}/{key[1]:.0e}"
             print(f"{case:12s} {name:13s} {tol:>11s} {int(np.max(res.n_steps)):7d} "
                   f"{wall:7.2f} {devs[0]:9.1e} {devs[1]:9.1e} {devs[2]:9.1e} | {mdevs[0]:20.1e} {mdevs[1]:8.1e} "
-                  f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'}",
+                  f"{mdevs[2]:8.1e} {'same' if flags else 'DIFFER'} | {table_metrics(m)[0]:>6d} {tdev:8.1e}",
                   flush=True)
-    print("largest relative deviation from the reference, any metric: per seed | of the seed means")
+    print("largest relative deviation from the reference, any metric: per seed | of the seed means"
+          " | of the table's mean error over successes, and whether every failure count is the reference's")
     for (rtol, atol), w in worst.items():
-        print(f"  rtol {rtol:.0e} atol {atol:.0e}: {w:.2e} | {worst_mean[(rtol, atol)]:.2e}")
+        c = (rtol, atol)
+        print(f"  rtol {rtol:.0e} atol {atol:.0e}: {w:.2e} | {worst_mean[c]:.2e} | {worst_table[c]:.2e}, "
+              f"failure counts {'equal' if counts_equal[c] else 'DIFFER'}")
 
 
 if __name__ == "__main__":

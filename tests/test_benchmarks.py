@@ -87,3 +87,26 @@ def test_obs_d_sets_the_obstacle_policys_range_only(monkeypatch):
         diff = [not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(h))]
         assert sum(diff) == 1, name
         assert with_policy_range(g, None) is g
+
+
+def test_tolerance_table_metrics_are_the_headline_tables(monkeypatch):
+    """``bench_tolerance.table_metrics``: a cell's failed runs and its mean position error over the
+    successful runs only, as the study's headline table reports them; ``table_deviation`` compares
+    them with the reference's (a run that fails under one tolerance only changes the count)."""
+    import numpy as np
+    from types import SimpleNamespace as NS
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from bench_tolerance import table_deviation, table_metrics
+
+    ref = NS(success=np.array([True, True, False]), mean_pos_err=np.array([0.02, 0.04, 9.0]))
+    assert table_metrics(ref) == (1, 0.03)
+    near = NS(success=ref.success, mean_pos_err=np.array([0.0201, 0.0401, 1.0]))
+    same, dev = table_deviation(near, ref)
+    assert same and abs(dev - 0.0001 / 0.03) < 1e-12  # the failed run's error is not in the table
+    flipped = NS(success=np.array([True, False, False]), mean_pos_err=ref.mean_pos_err)
+    same, dev = table_deviation(flipped, ref)
+    assert not same and abs(dev - 1 / 3) < 1e-12
+    none = NS(success=np.zeros(3, bool), mean_pos_err=ref.mean_pos_err)
+    assert table_metrics(none)[0] == 3 and np.isnan(table_metrics(none)[1])
+    assert table_deviation(none, none) == (True, 0.0)

@@ -647,21 +647,24 @@ def test_batch_with_qd0_alone_starts_every_member_at_the_arms_q0():
     assert len(compiles) <= 1, compiles  # a list of floats was static: one compilation per value
 
 
-def test_auto_solver_is_dopri5_for_trajectories_and_tsit5_for_guidance():
-    """``SimParams(solver="auto")`` (the default) integrates trajectory runs with Dopri5 and
-    gradient-guided runs with Tsit5; a named solver is used for both."""
+def test_auto_solver_is_tsit5_for_the_acceleration_level_oscs_and_dopri5_otherwise():
+    """``SimParams(solver="auto")`` (the default) integrates with the controller's ``auto_solver``:
+    Tsit5 for the acceleration OSC and the gradient-guided controller, Dopri5 for the others and
+    for a controller that does not say (this file's toy); a named solver is used for every controller."""
     import diffrax
 
-    from redman_jax._controllers import GradientGuided
+    from redman_jax._controllers import CONTROLLERS, AccelerationOSC, GradientGuided
     from redman_jax._sim import _make_solver, solver_name
 
     auto = SimParams()
     assert auto.solver == "auto"
     assert type(_make_solver(auto, CTRL)) is diffrax.Dopri5 and solver_name(auto, CTRL) == "dopri5"
-    assert type(_make_solver(auto, GradientGuided())) is diffrax.Tsit5
-    assert solver_name(auto, GradientGuided()) == "tsit5"
+    tsit = {name for name, cls in CONTROLLERS.items() if solver_name(auto, cls()) == "tsit5"}
+    assert tsit == {"acceleration", "gradient"}
+    for ctrl in (AccelerationOSC(), GradientGuided()):
+        assert type(_make_solver(auto, ctrl)) is diffrax.Tsit5
     for name, cls in (("tsit5", diffrax.Tsit5), ("dopri5", diffrax.Dopri5), ("bosh3", diffrax.Bosh3)):
-        for ctrl in (CTRL, GradientGuided()):
+        for ctrl in (CTRL, AccelerationOSC(), GradientGuided()):
             assert type(_make_solver(SimParams(solver=name), ctrl)) is cls
             assert solver_name(SimParams(solver=name), ctrl) == name
 

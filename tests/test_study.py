@@ -432,7 +432,7 @@ def test_a_float32_sweep_recomputes_a_float64_folder(monkeypatch, tmp_path):
 def test_solver_choice_reaches_the_runs_and_keys_them_by_the_solver_used(monkeypatch, tmp_path):
     """``--solver``: each simulation unit gets ``SimParams(solver=...)``; the unit's key holds the
     solver it resolves to, so a folder computed with another solver recomputes exactly the runs
-    whose solver changed (``auto`` is Dopri5 for trajectory runs, Tsit5 for guided ones) and keeps
+    whose solver changed (``auto`` is Dopri5 for the velocity OSC, Tsit5 for guided runs) and keeps
     the scenario builds."""
     calls, solvers = [], []
     _fake_pipeline(monkeypatch, calls, solvers=solvers)

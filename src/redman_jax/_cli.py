@@ -71,7 +71,7 @@ def _add_sweep_options(p: argparse.ArgumentParser, *, study: bool) -> None:
         p.add_argument("--ts", type=float, default=0.01, help="sample time in seconds (default 0.01)")
         p.add_argument("--solver", default="auto",
                        help="ODE solver of the simulations: auto, tsit5, dopri5, dopri8 or bosh3 (default "
-                            "auto: dopri5 for the trajectory controllers, tsit5 for gradient-guided; "
+                            "auto: tsit5 for the acceleration OSC and gradient-guided, dopri5 for the others; "
                             "rtol 1e-5, atol 1e-7 either way; 1e-4, 1e-5 in float32, REDMAN_JAX_X64=0)")
     p.add_argument("--max-retries", type=int, default=20,
                    help="IK-validation retries per seed (seed + 1000 k; default 20)")

@@ -120,6 +120,14 @@ class AbstractController(eqx.Module):
         return False
 
     @property
+    def auto_solver(self) -> str:
+        """The solver ``SimParams(solver="auto")`` integrates this controller's closed loop with
+        (a name of :data:`~redman_jax._sim.SOLVER_CHOICES`): Dopri5 unless a controller says
+        otherwise (the acceleration-level OSCs, whose runs Dopri5 integrates less accurately at
+        the default tolerances; measured in :mod:`redman_jax._sim`'s docstring)."""
+        return "dopri5"
+
+    @property
     def reads_obstacles(self) -> bool:
         """Whether the control law passes over the environment's obstacles (a null-space obstacle
         policy, a guidance field). True unless a controller says otherwise: the study shares one

@@ -560,6 +560,12 @@ class AccelerationOSC(_OSCOptions):
     when rot = 1), ``qdd_r = J#(xdd_r - J_s_dot qd) + alpha N h``, ``tau = M qdd_r + c + g``.
     """
 
+    @property
+    def auto_solver(self) -> str:
+        """Tsit5: at the default tolerances Dopri5 integrates this closed loop less accurately (see
+        :mod:`redman_jax._sim`)."""
+        return "tsit5"
+
     def default_gains(self) -> AccelerationGains:
         return AccelerationGains()
 
@@ -644,6 +650,12 @@ class GradientGuided(_OSCOptions):
     :func:`~redman_jax._fields.guidance_velocity` at the end effector with the current virtual-obstacle
     buffer of ``env``; ``Q_d = env.goal_quat``; then as :class:`AccelerationOSC`.
     """
+
+    @property
+    def auto_solver(self) -> str:
+        """Tsit5: at the default tolerances Dopri5 integrates this closed loop less accurately (see
+        :mod:`redman_jax._sim`)."""
+        return "tsit5"
 
     def default_gains(self) -> GradientGains:
         return GradientGains()

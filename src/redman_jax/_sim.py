@@ -36,45 +36,54 @@ loop from the host in calls of 512 iterations and moves its last stragglers to a
 (``SimParams.compact``; 8-DOF warehouse, 20 seeds: 2.0x less run time). ``mode="per_sample"`` runs
 them as the scan of per-sample solves, which is differentiable.
 
-Default solver (``SimParams.solver="auto"``): ``Dopri5`` for trajectory runs, ``Tsit5`` for
-gradient-guided runs, both with ``rtol = 1e-5``, ``atol = 1e-7`` in float64 (SPEC U9: adaptive,
-non-stiff, a little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6) and ``1e-4`` / ``1e-5`` in
-float32 (:data:`DEFAULT_TOLERANCES`: float64's sit at float32's rounding, where the error estimate
-is noise and the steps stop growing). SPEC U9 proposes Tsit5 throughout; on
-the study's trajectory runs Dopri5 (same 6 evaluations per step, FSAL) needs fewer steps at the same
-tolerances (``benchmarks/bench_solvers.py``, 9-DOF arm, seeds 1-4, batch maximum): warehouse
-velocity / acceleration OSC 2,212 / 2,584 against 4,118 / 4,746 steps, agriculture 2,577 / 4,921
-against 3,639 / 7,151, simple 3,557 / 3,437 against 3,971 / 4,056, joint space within 1 % there;
-inspection joint space is the one row where it takes more (1,264 against 1,125). On gradient-guided
-runs it was not better (warehouse 6,785 against 6,598 steps at the batch maximum, slower wall
-time) and its goal-stop metric deviated more from the reference (simple: 1.2e-2 per seed), so those
-keep Tsit5. Welding is a draw (joint space / velocity / acceleration 3,028 / 4,154 / 11,845 steps
-against 3,053 / 4,140 / 11,543). Over the whole study on identical scenarios (900 tracking runs,
-``redman-jax sweep --solver tsit5`` beside the default), Dopri5 takes 1.15x (velocity) and 1.12x
-(acceleration) fewer steps in all, joint space 1 % more; 2 runs change a flag: one touches a joint
-limit under Tsit5 only, and one (9-DOF agriculture, acceleration, seed 14) collides under Dopri5
-only. That run is sensitive to the integration error whatever the solver: against the reference
-below its final position deviates by 48 % with Dopri5 and 6.9 % with Tsit5, and the reference
-does not collide. Accuracy (``benchmarks/bench_tolerance.py``, against a Tsit5
-reference at rtol 1e-9 / atol 1e-11): with Dopri5 the study's metrics of the trajectory runs
-deviate by at most 6.1e-4 relative per seed in simple and agriculture (seeds 1-4) and 2.3e-5 in
-warehouse (seeds 1-2), every success, collision and joint-limit flag equal (inspection and welding
-not re-measured); with Tsit5 (the guided runs' solver, and the earlier default) at most 1.5e-4 in
-inspection and welding, 3.4e-5 in warehouse for the tracking controllers, 3.6e-3 for the
-agriculture velocity OSC, and 7.3e-3 / 1.4e-2 for the gradient-guided final position in warehouse /
-agriculture (its stop rule moves by a sample). Remeasured for the gradient-guided runs at a291e76
-(``--controllers gradient --cases agriculture,warehouse,simple``, seeds 1-4): the final position
-deviates per seed by up to 3.9e-2 / 7.9e-2 / 4.9e-3 (agriculture / warehouse / simple), its mean
-over the seeds by 4.4e-3 / 6.3e-3 / 4.2e-4; the mean position and orientation errors by at most
-2.7e-3 per seed; every flag equal. On all 20 seeds of 9-DOF agriculture (the same day) the
-velocity OSC stays within 3.1e-4 per seed (5.0e-6 over the seed means), but the acceleration OSC
-deviates by up to 3.3e-1 per seed (final position; 2.0e-1 orientation) and 1.9e-2 over the seed
-means, and a flag differs: at the default tolerances that cell misses the issue's 1 % (the run
-of seed 14 above is one of its sensitive runs). Looser tolerances do not pay off: at rtol 1e-4 /
-atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint space and velocity OSC take more steps, not
-fewer (simple 3,739 / 3,786 against 2,787 / 3,557; welding joint space 4,589 against 2,983), and
-only the acceleration OSC fewer (simple 1,933 against 3,437). The warehouse acceleration reference needs
-``--ref-budget 1024``: it takes about 83,500 steps.
+Default solver (``SimParams.solver="auto"``): the controller's ``auto_solver``, ``Tsit5`` for the
+acceleration OSC and the gradient-guided controller, ``Dopri5`` for joint space, velocity OSC and a
+controller that does not say, all with ``rtol = 1e-5``, ``atol = 1e-7`` in float64 (SPEC U9:
+adaptive, non-stiff, a little tighter than MATLAB's ``ode113`` defaults 1e-3/1e-6) and ``1e-4`` /
+``1e-5`` in float32 (:data:`DEFAULT_TOLERANCES`: float64's sit at float32's rounding, where the
+error estimate is noise and the steps stop growing). SPEC U9 proposes Tsit5 throughout.
+
+*Why Dopri5 for joint space and velocity OSC.* It needs fewer steps at the same tolerances
+(``benchmarks/bench_solvers.py``, 9-DOF arm, seeds 1-4, batch maximum): warehouse velocity OSC
+2,212 against 4,118 steps, agriculture 2,577 against 3,639, simple 3,557 against 3,971, joint space
+within 1 % there; inspection joint space is the one row where it takes more (1,264 against 1,125);
+welding is a draw. Over the whole study on identical scenarios (``redman-jax sweep --solver
+tsit5`` beside the then default) it took 1.15x fewer steps for the velocity OSC. Accuracy
+(``benchmarks/bench_tolerance.py``, against a Tsit5 reference at rtol 1e-9 / atol 1e-11): the
+velocity OSC on all 20 seeds of 9-DOF agriculture within 3.1e-4 per seed (5.0e-6 over the seed
+means); the trajectory runs of simple and agriculture (seeds 1-4) within 6.1e-4 per seed and
+warehouse (seeds 1-2) within 2.3e-5, every success, collision and joint-limit flag equal.
+
+*Why Tsit5 for the acceleration-level OSCs.* Their runs press joints into the limit contact (3.6)
+and integrate at the edge of an explicit solver's stability, where Dopri5's accepted steps drift.
+On all 20 seeds of each 9-DOF case (``bench_tolerance.py --seeds 1-20 --controllers acceleration
+--candidates 1e-5/1e-7``, once with ``--solver dopri5`` and once with ``--solver tsit5``;
+2026-12-06) Dopri5 misses the 1 % in agriculture: up to 0.33 per seed (final position) and 1.9e-2
+over the seed means, and seed 14 collides where the reference does not. Tighter tolerances do not
+cure it: at rtol 1e-6 / 1e-7 seed 16's final position is 1.9e-2 / 0.31 off and seed 6 (a wrist
+joint held 1 s against its limit, two thirds of the steps rejected) takes 48,494 / 319,815 steps;
+Dopri5 reaches the reference only at rtol 1e-9 (seeds 14 and 16: 0.020650 / 0.421366 m against the
+reference's 0.020619 / 0.421499, and Tsit5 at 1e-10 0.020617 / 0.421390: the reference checked by
+another method and a tighter tolerance). A PI step-size controller (0.4, 0.3) keeps Dopri5's
+flags and seed means within 1 % there (6.4e-3) but seed 14 still 0.57 off. Tsit5 at the default
+tolerances, against Dopri5 (largest deviation per seed / of the seed means; steps batch max):
+agriculture 1.3e-2 / 2.5e-4, flags equal (Dopri5 0.33 / 1.9e-2, a flag differs), 16,188 against
+8,146 steps; warehouse 1.3e-3 / 1.3e-5 (4.4e-4 / 2.3e-5), 7,879 against 4,233; inspection 7.6e-6 /
+1.1e-6 (6.1e-6 / 1.3e-6), 1,810 against 1,686; welding 5.6e-2 / 4.3e-3 (0.13 / 9.3e-3), 11,543
+against 11,842; simple 8.8e-4 / 7.7e-6 (1.0e-3 / 3.7e-6), 5,782 against 4,991; every flag equal
+but Dopri5's agriculture one. So it costs up to 1.9x the steps (warehouse) for the accuracy the
+study needs. The gradient-guided runs (the same acceleration-level command) had Tsit5 already:
+with Dopri5 they took about as many steps (warehouse 6,785 against 6,598 at the batch maximum,
+slower wall time) and their goal-stop metric deviated more (simple: 1.2e-2 per seed). With Tsit5,
+against the reference (seeds 1-4, a291e76): final position per seed up to 3.9e-2 / 7.9e-2 / 4.9e-3
+(agriculture / warehouse / simple; the stop rule moves by a sample), 4.4e-3 / 6.3e-3 / 4.2e-4 over
+the seed means; mean position and orientation errors within 2.7e-3 per seed; every flag equal.
+
+Looser tolerances do not pay off: at rtol 1e-4 / atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint
+space and velocity OSC take more steps, not fewer (simple 3,739 / 3,786 against 2,787 / 3,557;
+welding joint space 4,589 against 2,983). The references take minutes per cell (9-DOF, 20 seeds:
+agriculture acceleration 167,088 steps, 583 s; warehouse 120,622 steps, 907 s, which needs
+``--ref-budget 1024``).
 
 **Adjoint.** ``RecursiveCheckpointAdjoint`` (discretise-then-optimise): gradients are exact for the
 computed discrete trajectory, memory is bounded by binomial checkpointing over ``max_steps``,
@@ -154,8 +163,9 @@ class SimParams(eqx.Module):
       on within this distance of the goal for the gradient-guided controller (0.5 m [T]).
     * ``lme_mu``, ``lme_max_jump``: local-minima estimator regularisation and largest accepted step
       (U8: 1e-6, 2 m).
-    * static ``solver``: ``"auto"`` (default: ``"dopri5"`` for trajectory runs, ``"tsit5"`` for
-      gradient-guided runs; see the module docstring), ``"dopri5"``, ``"tsit5"``, ``"dopri8"``,
+    * static ``solver``: ``"auto"`` (default: the controller's ``auto_solver``, ``"tsit5"`` for the
+      acceleration OSC and gradient-guided runs, ``"dopri5"`` for the others; see the module
+      docstring), ``"dopri5"``, ``"tsit5"``, ``"dopri8"``,
       ``"bosh3"``;
       ``mode``: ``"horizon"`` or ``"per_sample"`` (see the module docstring);
       ``adjoint``: ``"recursive"`` (default), ``"direct"``, ``"backsolve"``;
@@ -442,10 +452,10 @@ def _closed_loop(t, y: _Y, rs: RefSample, env, active, arm, controller, gains, p
 
 def solver_name(params: SimParams, controller) -> str:
     """The solver ``params.solver`` selects for ``controller``: the name itself, or for ``"auto"``
-    ``"dopri5"`` for trajectory runs and ``"tsit5"`` for gradient-guided ones (measured, see the
-    module docstring)."""
+    the controller's ``auto_solver``: ``"tsit5"`` for the acceleration OSC and the gradient-guided
+    controller, ``"dopri5"`` for the others (measured, see the module docstring)."""
     if params.solver == "auto":
-        return "tsit5" if controller.uses_guidance else "dopri5"
+        return controller.auto_solver
     return params.solver
 
 
