@@ -86,9 +86,12 @@ and 3.5e-4 over the seed means, but one success flag differs: seed 18, whose gui
 minimum about 10.1 cm from the goal, ends 0.0995 m from it (a success) against the reference's
 0.1022 m. That end point is set by rounding as much as by the tolerance: at the same tolerance, in
 the same batch, the run ends 0.1038 m away with XLA's CPU thread pool two threads wide instead of
-one (other seeds move by up to 3.6 mm too), and 0.0997 m simulated alone. The estimator's discrete
-updates (3.24-3.27) pass such differences on, so the success of a run that stops this close to the
-10 cm radius is not decided by the integration's accuracy.
+one (other seeds move by up to 3.6 mm too), and 0.0997 m simulated alone. The reference moves as
+much: on two threads it ends 0.1002 m away, on one 0.1035 m, alone 0.1022 m (seed 1: 0.1426 against
+0.1369 m; the slowest run takes 173,454 against 244,335 steps). The estimator's discrete updates
+(3.24-3.27) pass rounding on, so a guided run's end point is defined to some millimetres at any
+tolerance, and the success of a run that stops this close to the 10 cm radius is not decided by
+the integration's accuracy.
 
 Looser tolerances do not pay off: at rtol 1e-4 / atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint
 space and velocity OSC take more steps, not fewer (simple 3,739 / 3,786 against 2,787 / 3,557;
