@@ -651,11 +651,7 @@ class GradientGuided(_OSCOptions):
     buffer of ``env``; ``Q_d = env.goal_quat``; then as :class:`AccelerationOSC`.
     """
 
-    @property
-    def auto_solver(self) -> str:
-        """Tsit5: at the default tolerances Dopri5 integrates this closed loop less accurately (see
-        :mod:`redman_jax._sim`)."""
-        return "tsit5"
+    auto_solver = AccelerationOSC.auto_solver  # the same acceleration-level command
 
     def default_gains(self) -> GradientGains:
         return GradientGains()

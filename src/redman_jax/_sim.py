@@ -57,9 +57,9 @@ warehouse (seeds 1-2) within 2.3e-5, every success, collision and joint-limit fl
 4.0e-5 per seed (4.9e-6 over the seed means), the velocity OSC within 2.4e-3 per seed (welding;
 2.8e-4 over the seed means) in all five; every flag equal.
 
-*Why Tsit5 for the acceleration-level OSCs.* Their runs press joints into the limit contact (3.6)
-and integrate at the edge of an explicit solver's stability, where Dopri5's accepted steps drift.
-On all 20 seeds of each 9-DOF case (``bench_tolerance.py --seeds 1-20 --controllers acceleration
+*Why Tsit5 for the acceleration-level OSCs.* Their runs press joints into the limit contact (3.6),
+where many steps are rejected (seed 6 below); why Dopri5's accepted steps there are less accurate
+than Tsit5's is measured, not explained. On all 20 seeds of each 9-DOF case (``bench_tolerance.py --seeds 1-20 --controllers acceleration
 --candidates 1e-5/1e-7``, once with ``--solver dopri5`` and once with ``--solver tsit5``;
 2026-12-06) Dopri5 misses the 1 % in agriculture: up to 0.33 per seed (final position) and 1.9e-2
 over the seed means, and seed 14 collides where the reference does not. Tighter tolerances do not
