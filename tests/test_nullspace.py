@@ -589,6 +589,36 @@ def test_grouped_slot_steps_differentiate_like_single_slots(rng, spp):
         np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+@pytest.mark.parametrize("n_planes,n_linear", [(3, 0), (6, 3), (4, 1)])
+def test_fold_sums_every_plane_exactly(rng, dtype, n_planes, n_linear):
+    """``_fold_families`` accumulates its planes two by two as complex planes (one loop computes
+    what two planes share): each plane is still the plain slot-by-slot sum, to the bit (additions
+    only, in slot order, as a Python loop over the slots computes them), for odd and even plane
+    counts, with tangent planes packed apart, in both precisions."""
+    from redman_jax._nullspace import _fold_families
+
+    obs = jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+                       _many_obstacles(rng, k=9, active=7))
+    X = tuple(jnp.asarray(rng.normal(size=(11,)), dtype) for _ in range(3))
+
+    def slot_fn(kind, R, p, dims, mask):
+        base = (X[0] + p[0], X[1] - p[1], p[2] - X[2], R[0, 1] + X[0], dims[0] - X[1], X[2] + R[2, 2])
+        return base[:n_planes]
+
+    init = tuple(jnp.full((11,), 0.25 * i, dtype) for i in range(n_planes))
+    got = jax.jit(lambda o: _fold_families(o, init, slot_fn, n_linear=n_linear))(obs)
+    want = [np.asarray(x) for x in init]
+    for fam in (obs.spheres, obs.boxes, obs.cylinders):
+        for j in range(fam.capacity):
+            planes = slot_fn(None, *(np.asarray(x[j]) for x in (fam.R, fam.p, fam.dims, fam.mask)))
+            want = [w + np.asarray(g, dtype) for w, g in zip(want, planes)]
+    assert len(got) == n_planes
+    for g, w in zip(got, want):
+        assert g.dtype == dtype
+        np.testing.assert_array_equal(np.asarray(g), w)
+
+
 @_default_emitters_only
 @pytest.mark.parametrize("spp", [1, 7, 16, 45])
 def test_padding_to_the_layout_keeps_the_groups_and_the_sums(rng, spp):
