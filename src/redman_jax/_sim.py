@@ -91,7 +91,21 @@ much: on two threads it ends 0.1002 m away, on one 0.1035 m, alone 0.1022 m (see
 0.1369 m; the slowest run takes 173,454 against 244,335 steps). The estimator's discrete updates
 (3.24-3.27) pass rounding on, so a guided run's end point is defined to some millimetres at any
 tolerance, and the success of a run that stops this close to the 10 cm radius is not decided by
-the integration's accuracy.
+the integration's accuracy. Simple and warehouse, all 20 seeds (2026-12-06, ``tolseed``-style runs
+of ``simulate_batch``, one core): simple within 1.2e-2 per seed (final position: seed 7, 0.4 mm of
+32 mm) and 2.2e-4 over the seed means, every flag equal. In the warehouse every run fails, in the
+reference as at the default tolerances (flags equal); where the failed runs end after 6 s is
+rounding's: two references at rtol 1e-9 that differ only in XLA's flags (one thread without
+Eigen's pool, or JAX's defaults) end seed 13 (a collided run) 7.09 and 0.34 m from the goal, the
+uncollided seed 20 0.42 and 0.56 m, their seed means of the final distance 20 % apart, while the
+default tolerances' run lies between them (seed 13 4.67 m, seed 20 0.36 m; 7.4e-2 from the first
+reference over the seed means).
+
+The tracking controllers on the 7- and 8-DOF arms (agriculture, welding and simple, velocity and
+acceleration OSC, all 20 seeds, ``bench_tolerance.py --dof 7|8 --seeds 1-20 --cases
+agriculture,welding,simple --controllers acceleration,velocity --candidates 1e-5/1e-7
+--ref-budget 1024``; 2026-12-06): within 1.9e-3 / 2.7e-3 per seed, 4.2e-4 / 3.5e-4 over the seed
+means and 1.5e-6 / 3.1e-5 in the table's mean error over successes; every flag equal.
 
 Looser tolerances do not pay off: at rtol 1e-4 / atol 1e-6 (9-DOF, seeds 1-4, batch maximum) joint
 space and velocity OSC take more steps, not fewer (simple 3,739 / 3,786 against 2,787 / 3,557;
