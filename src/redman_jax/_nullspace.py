@@ -609,12 +609,12 @@ def _pack(planes: tuple) -> tuple:
     return pairs + (planes[-1:] if len(planes) % 2 else ())
 
 
-def _unpack(packed: tuple, count: int) -> tuple:
-    """The ``count`` real planes of :func:`_pack`."""
+def _unpack(packed: tuple) -> tuple:
+    """The real planes of :func:`_pack`."""
     out = []
     for z in packed:
         out += [jnp.real(z), jnp.imag(z)] if jnp.iscomplexobj(z) else [z]
-    return tuple(out[:count])
+    return tuple(out)
 
 
 def _fold_families(obs, init, slot_fn, n_linear: int = 0):
@@ -639,7 +639,9 @@ def _fold_families(obs, init, slot_fn, n_linear: int = 0):
 
     k = len(init) - n_linear
     pack = lambda planes: _pack(planes[:k]) + _pack(planes[k:])
-    acc = pack(init)
+    head = _pack(init[:k])
+    kp = len(head)  # complex or real accumulators of the primal planes
+    acc = head + _pack(init[k:])
     for i, kind in enumerate(("spheres", "boxes", "cylinders")):
         if getattr(obs, kind).capacity == 0:
             continue
@@ -653,8 +655,7 @@ def _fold_families(obs, init, slot_fn, n_linear: int = 0):
             return tuple(x + y for x, y in zip(acc, pack(gs)))
 
         acc = fold_slots(obs, i, acc, step)
-    kp = len(_pack(init[:k]))
-    return _unpack(acc[:kp], k) + _unpack(acc[kp:], n_linear)
+    return _unpack(acc[:kp]) + _unpack(acc[kp:])
 
 
 @jax.custom_jvp

@@ -91,8 +91,10 @@ much: on two threads it ends 0.1002 m away, on one 0.1035 m, alone 0.1022 m (see
 0.1369 m; the slowest run takes 173,454 against 244,335 steps). The estimator's discrete updates
 (3.24-3.27) pass rounding on, so a guided run's end point is defined to some millimetres at any
 tolerance, and the success of a run that stops this close to the 10 cm radius is not decided by
-the integration's accuracy. Simple and warehouse, all 20 seeds (2026-12-06, ``tolseed``-style runs
-of ``simulate_batch``, one core): simple within 1.2e-2 per seed (final position: seed 7, 0.4 mm of
+the integration's accuracy. Simple and warehouse, all 20 seeds (2026-12-06; the simulations of
+``bench_tolerance.py --controllers gradient --cases simple,warehouse --seeds 1-20 --candidates
+1e-5/1e-7 --ref-budget 1024``, their metrics saved per seed; one core,
+``--xla_cpu_multi_thread_eigen=false``): simple within 1.2e-2 per seed (final position: seed 7, 0.4 mm of
 32 mm) and 2.2e-4 over the seed means, every flag equal. In the warehouse every run fails, in the
 reference as at the default tolerances (flags equal); where the failed runs end after 6 s is
 rounding's: two references at rtol 1e-9 that differ only in XLA's flags (one thread without
