@@ -913,6 +913,39 @@ def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
     assert seen == ["False", "True"]
 
 
+def test_the_workers_llvm_option_leaves_the_machine_code_alone():
+    """``-forget-scev-loop-unroll=true`` in ``LOOP_XLA_FLAGS`` reaches LLVM (an unknown LLVM
+    option aborts the process) and changes what LLVM caches, not what it emits: a hoisted loop of
+    small fused loops (9 x 9 dots, element-wise work, the shapes of a step) returns the same bits
+    with and without it, each in a fresh process as a worker starts."""
+    from redman_jax._study import LOOP_XLA_FLAGS, WORKER_XLA_FLAGS, _with_flags, _xla_accepts
+
+    option = "-forget-scev-loop-unroll=true"
+    assert any(option in f for f in LOOP_XLA_FLAGS)
+    if not _xla_accepts(_with_flags("", WORKER_XLA_FLAGS)):
+        pytest.skip("this jaxlib does not accept the workers' flags (the workers then start without them)")
+    code = ("import jax, jax.numpy as jnp, numpy as np\n"
+            "jax.config.update('jax_enable_x64', True)\n"
+            "A = jnp.asarray(np.random.default_rng(0).normal(size=(9, 9)) / 3)\n"
+            "def body(c):\n"
+            "    x, v, k = c\n"
+            "    v = jnp.tanh(A @ x) - 0.1 * jnp.sin(x[::-1]) * v + jnp.cos(A.T @ v) / (1 + x * x)\n"
+            "    return x + 0.01 * v, v, k + 1\n"
+            "f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[2] < 500, body, (x, x, 0))[:2])\n"
+            "x, v = f(jnp.linspace(-1, 1, 9))\n"
+            "print(np.asarray(x).tobytes().hex() + np.asarray(v).tobytes().hex())\n")
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    seen = []
+    for flags in (tuple(f.replace("," + option, "") for f in WORKER_XLA_FLAGS), WORKER_XLA_FLAGS):
+        env["XLA_FLAGS"] = _with_flags("", flags)
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        seen.append(done.stdout.split()[-1])
+    assert option not in _with_flags("", tuple(f.replace("," + option, "") for f in WORKER_XLA_FLAGS))
+    assert seen[0] == seen[1]
+
+
 def test_the_loop_flags_are_for_a_cpu_backend_only(monkeypatch):
     """The workers' loop flags (LLVM's level is an accelerator backend's too) only where JAX will
     run on the CPU: ``JAX_PLATFORMS``' first entry if set, else no accelerator plugin installed."""
