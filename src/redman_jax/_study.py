@@ -716,17 +716,20 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # 81.2/83.9 -> 76.9/78.7 s with the hoisting alone (with level 1: 22.4, 54.7, 79.7 s). The 9-DOF sweep (5 builds, 18 simulations, 2 workers, one after the
 # other on an idle machine): 330 -> 281 s; units 612.8 -> 506.5 s, of which compiling 224.8 ->
 # 261.0 s. Rounding differs (other machine code), as with the emitter flags above.
-# And LLVM forgets only what it must after each loop it unrolls: by default, after unrolling a loop,
-# ScalarEvolution forgets every cached result of the top-most loop around it, and a hoisted stepping
-# loop holds the whole step, each of its many small fused loops unrolled in turn: quadratic, the
-# largest single cost in profiles of these compilations (llvm::ScalarEvolution::visitAndClearUsers,
-# forgetLoop: 18 % of a 9-DOF warehouse gradient-guided unit's process time, 12 % with the option).
-# ``-forget-scev-loop-unroll=true`` (LLVM's own option, passed through the extra options) forgets
-# the cache wholesale instead, which LLVM documents as cheaper to compile; a cache only, so the
-# machine code is the same: the units' traces are equal to the bit. Measured (one core each, side
-# by side, units of the study on its stored scenes, backend compile s): 9-DOF agriculture velocity
-# OSC 31.0 / 32.9 -> 23.9 / 26.4 (unit 46.8 / 48.3 -> 40.1 / 43.0 s), 8-DOF agriculture
-# acceleration 23.8 -> 19.1 (unit 39.8 -> 35.2 s), 9-DOF warehouse gradient-guided 51.6 -> 48.3.
+# And LLVM drops its ScalarEvolution cache wholesale after each loop it unrolls. By default it
+# forgets the cached results of the top-most loop around the unrolled one, walking all of it; a
+# hoisted stepping loop holds the whole step, and each of its many small fused loops unrolled in
+# turn walks it again: quadratic, the largest single cost in profiles of these compilations
+# (ScalarEvolution, mostly visitAndClearUsers and forgetLoop, 18 % of a 9-DOF warehouse
+# gradient-guided unit's process time; 12 % with the option, 2 % of a 9-DOF agriculture velocity
+# unit's). ``-forget-scev-loop-unroll=true`` (LLVM's own option, passed through the extra options;
+# its help: "sometimes preferred to reduce compile time") forgets everything at once instead. A
+# cache only, so the machine code is the same: the units' traces and the study's table are equal
+# to the bit. Measured (one core each, side by side, units of the study on its stored scenes,
+# backend compile s): 9-DOF agriculture velocity OSC 31.0 / 32.9 -> 23.9 / 26.4 (unit 46.8 / 48.3
+# -> 40.1 / 43.0 s), 8-DOF agriculture acceleration 23.8 -> 19.1 (unit 39.8 -> 35.2 s), 9-DOF
+# warehouse gradient-guided 51.6 -> 48.3; the whole study's compiling 927 -> 677 s (fresh clones
+# of 960d1e1 and 51d9de7, README).
 LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000,"
                   "-forget-scev-loop-unroll=true",
                   "--xla_backend_optimization_level=1")
