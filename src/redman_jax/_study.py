@@ -728,8 +728,8 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # to the bit. Measured (one core each, side by side, units of the study on its stored scenes,
 # backend compile s): 9-DOF agriculture velocity OSC 31.0 / 32.9 -> 23.9 / 26.4 (unit 46.8 / 48.3
 # -> 40.1 / 43.0 s), 8-DOF agriculture acceleration 23.8 -> 19.1 (unit 39.8 -> 35.2 s), 9-DOF
-# warehouse gradient-guided 51.6 -> 48.3; the whole study's compiling 927 -> 677 s (fresh clones
-# of 960d1e1 and 51d9de7, README).
+# warehouse gradient-guided 51.6 -> 48.3; the whole study's compiling 909 / 927 -> 677 / 753 s
+# (fresh clones of 43ddbbd and 960d1e1, then 51d9de7 and 57c2f14; README).
 LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000,"
                   "-forget-scev-loop-unroll=true",
                   "--xla_backend_optimization_level=1")
