@@ -888,6 +888,17 @@ def test_sweep_scripts_report_bad_options_in_one_line(script, args, message, tmp
     assert f"{script}: error: {message}" in done.stderr and "Traceback" not in done.stderr
 
 
+def _last_word_with_flags(code: str, flags) -> str:
+    """The last word ``python -c code`` prints in a fresh CPU process whose ``XLA_FLAGS`` are
+    ``flags`` alone, as a worker starts (a failed process fails the test with its stderr)."""
+    from redman_jax._study import _with_flags
+
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=_with_flags("", flags))
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.split()[-1]
+
+
 def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
     """``LOOP_XLA_FLAGS`` take effect in this jaxlib: a while loop whose body (a dot among
     element-wise work) reads more than XLA's default 1 kB threshold is compiled as one hoisted call
@@ -902,14 +913,7 @@ def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
             "f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[1] < 100, "
             "lambda c: (jnp.sin(c[0]) @ c[0] * 0.5, c[1] + 1), (x, 0))[0])\n"
             "print('xla_cpu_small_call' in f.lower(jnp.ones((20, 20))).compile().as_text())\n")
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    seen = []
-    for extra in (EMITTER_XLA_FLAGS, WORKER_XLA_FLAGS):
-        env["XLA_FLAGS"] = _with_flags("", extra)
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                              timeout=300)
-        assert done.returncode == 0, done.stderr[-2000:]
-        seen.append(done.stdout.split()[-1])
+    seen = [_last_word_with_flags(code, extra) for extra in (EMITTER_XLA_FLAGS, WORKER_XLA_FLAGS)]
     assert seen == ["False", "True"]
 
 
@@ -934,15 +938,9 @@ def test_the_workers_llvm_option_leaves_the_machine_code_alone():
             "f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[2] < 500, body, (x, x, 0))[:2])\n"
             "x, v = f(jnp.linspace(-1, 1, 9))\n"
             "print(np.asarray(x).tobytes().hex() + np.asarray(v).tobytes().hex())\n")
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    seen = []
-    for flags in (tuple(f.replace("," + option, "") for f in WORKER_XLA_FLAGS), WORKER_XLA_FLAGS):
-        env["XLA_FLAGS"] = _with_flags("", flags)
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                              timeout=300)
-        assert done.returncode == 0, done.stderr[-2000:]
-        seen.append(done.stdout.split()[-1])
-    assert option not in _with_flags("", tuple(f.replace("," + option, "") for f in WORKER_XLA_FLAGS))
+    without = tuple(f.replace("," + option, "") for f in WORKER_XLA_FLAGS)
+    assert option not in _with_flags("", without)
+    seen = [_last_word_with_flags(code, flags) for flags in (without, WORKER_XLA_FLAGS)]
     assert seen[0] == seen[1]
 
 
