@@ -917,23 +917,27 @@ def test_the_workers_loop_flags_hoist_a_simulation_sized_loop():
     assert seen == ["False", "True"]
 
 
-def test_the_workers_llvm_option_leaves_the_machine_code_alone():
-    """``-forget-scev-loop-unroll=true`` in ``LOOP_XLA_FLAGS`` reaches LLVM (an unknown LLVM
-    option aborts the process) and changes what LLVM caches, not what it emits: a hoisted loop of
-    small fused loops (9 x 9 dots, element-wise work, the shapes of a step) returns the same bits
-    with and without it, each in a fresh process as a worker starts."""
+@pytest.mark.parametrize("option", ["-forget-scev-loop-unroll=true", "-inline-threshold=-20000"])
+def test_the_workers_llvm_options_leave_the_results_alone(option):
+    """Each LLVM option in ``LOOP_XLA_FLAGS`` reaches LLVM (an unknown LLVM option aborts the
+    process) and leaves the arithmetic alone: a hoisted loop of small fused loops and dots (9 x 9
+    and 9 x 3 matrix-vector products from several places, XLA's kernels that the inline threshold
+    keeps as calls; element-wise work; the shapes of a step) returns the same bits with and
+    without it, each in a fresh process as a worker starts. ``-forget-scev-loop-unroll`` changes
+    what LLVM caches, ``-inline-threshold`` which calls it copies into the loop."""
     from redman_jax._study import LOOP_XLA_FLAGS, WORKER_XLA_FLAGS, _with_flags, _xla_accepts
 
-    option = "-forget-scev-loop-unroll=true"
     assert any(option in f for f in LOOP_XLA_FLAGS)
     if not _xla_accepts(_with_flags("", WORKER_XLA_FLAGS)):
         pytest.skip("this jaxlib does not accept the workers' flags (the workers then start without them)")
     code = ("import jax, jax.numpy as jnp, numpy as np\n"
             "jax.config.update('jax_enable_x64', True)\n"
-            "A = jnp.asarray(np.random.default_rng(0).normal(size=(9, 9)) / 3)\n"
+            "r = np.random.default_rng(0)\n"
+            "A, B = (jnp.asarray(r.normal(size=s) / 3) for s in ((9, 9), (9, 3)))\n"
             "def body(c):\n"
             "    x, v, k = c\n"
             "    v = jnp.tanh(A @ x) - 0.1 * jnp.sin(x[::-1]) * v + jnp.cos(A.T @ v) / (1 + x * x)\n"
+            "    v = v + B @ jnp.tanh(B.T @ v) - 0.01 * (A @ (B @ (B.T @ x)))\n"
             "    return x + 0.01 * v, v, k + 1\n"
             "f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[2] < 500, body, (x, x, 0))[:2])\n"
             "x, v = f(jnp.linspace(-1, 1, 9))\n"
