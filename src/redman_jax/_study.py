@@ -747,7 +747,8 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # lowered and compiled s): 8-DOF agriculture acceleration OSC 28.3 -> 27.4 and 23.7 -> 23.2, 9-DOF
 # simple joint space 16.5 -> 16.5 and 17.7 -> 17.8, and their scenario builds 0.9-1.4 s longer (4
 # pairs, 10.3-14.5 s). Without LoopRotate instead (``-rotation-max-header-size=0``) the warehouse
-# guided unit compiled in 42.9 s but ran 103.4 s warm against 73.2.
+# guided unit compiled in 42.9 s but ran 103.4 s warm against 73.2. The whole study's compiling
+# 677 -> 635 s, its running part equal (724 / 721 s; fresh clones of 51d9de7 and d447f74, README).
 LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000,"
                   "-forget-scev-loop-unroll=true,-inline-threshold=-20000",
                   "--xla_backend_optimization_level=1")
