@@ -738,8 +738,8 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # function calls 7 such kernels from 81 places; inlined, each place held a copy of its tiled loops
 # inside the step, and for every loop it rotates LoopRotate forgets the ScalarEvolution results of
 # the whole top-most loop, the step (a gdb sample of that compilation caught it there;
-# ``visitAndClearUsers`` 5.8 % of a profile of that unit's process, about 2.3 s; without inlining 2.1 % of
-# a profile of the unit and a warm rerun, about 1.0 s).
+# ``visitAndClearUsers`` 5.8 % of a profile of that unit's process, about 2.8 s; without inlining 2.1 % of
+# a profile of the unit and a warm rerun, about 1.1 s).
 # Not inlined, the same arithmetic: the units' traces are equal to the bit. Measured (one core
 # each, side by side, units of the study on their stored scenes; backend compile s of the
 # simulation, warm run s in brackets): 9-DOF warehouse gradient-guided 52.3 -> 43.3 (65.2 -> 65.3),
