@@ -721,15 +721,15 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # hoisted stepping loop holds the whole step, and each of its many small fused loops unrolled in
 # turn walks it again: quadratic, the largest single cost in profiles of these compilations
 # (ScalarEvolution, mostly visitAndClearUsers and forgetLoop, 18 % of a 9-DOF warehouse
-# gradient-guided unit's process time; 12 % with the option, 2 % of a 9-DOF agriculture velocity
-# unit's). ``-forget-scev-loop-unroll=true`` (LLVM's own option, passed through the extra options;
-# its help: "sometimes preferred to reduce compile time") forgets everything at once instead. A
-# cache only, so the machine code is the same: the units' traces and the study's table are equal
-# to the bit. Measured (one core each, side by side, units of the study on its stored scenes,
-# backend compile s): 9-DOF agriculture velocity OSC 31.0 / 32.9 -> 23.9 / 26.4 (unit 46.8 / 48.3
-# -> 40.1 / 43.0 s), 8-DOF agriculture acceleration 23.8 -> 19.1 (unit 39.8 -> 35.2 s), 9-DOF
-# warehouse gradient-guided 51.6 -> 48.3; the whole study's compiling 909 / 927 -> 677 / 753 s
-# (fresh clones of 43ddbbd and 960d1e1, then 51d9de7 and 57c2f14; README).
+# gradient-guided unit's process time; 12 % with the option, the rest from LoopRotate, below).
+# ``-forget-scev-loop-unroll=true`` (LLVM's own option, passed through the extra options; its help:
+# "sometimes preferred to reduce compile time") forgets everything at once instead. A cache only,
+# so the machine code is the same: the units' traces and the study's table are equal to the bit.
+# Measured (one core each, side by side, units of the study on its stored scenes, backend compile
+# s): 9-DOF agriculture velocity OSC 31.0 / 32.9 -> 23.9 / 26.4 (unit 46.8 / 48.3 -> 40.1 / 43.0
+# s), 8-DOF agriculture acceleration 23.8 -> 19.1 (unit 39.8 -> 35.2 s), 9-DOF warehouse
+# gradient-guided 51.6 -> 48.3; the whole study's compiling 909 / 927 -> 677 / 753 s (fresh clones
+# of 43ddbbd and 960d1e1, then 51d9de7 and 57c2f14; README).
 # And LLVM inlines no call that it may keep (``-inline-threshold=-20000``: a call is inlined where
 # its cost is under the threshold, a function's only call gets a 15,000 bonus, so none is). XLA
 # marks a hoisted loop's body, condition, reductions and other nested computations always-inline,
@@ -738,18 +738,18 @@ EMITTER_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_experimen
 # function calls 7 such kernels from 81 places; inlined, each place held a copy of its tiled loops
 # inside the step, and for every loop it rotates LoopRotate forgets the ScalarEvolution results of
 # the whole top-most loop, the step (a gdb sample of that compilation caught it there;
-# ``visitAndClearUsers`` 5.8 % of a profile of that unit's process, about 2.8 s; without inlining 2.1 % of
-# a profile of the unit and a warm rerun, about 1.1 s).
-# Not inlined, the same arithmetic: the units' traces are equal to the bit. Measured (one core
-# each, side by side, units of the study on their stored scenes; backend compile s of the
-# simulation, warm run s in brackets): 9-DOF warehouse gradient-guided 52.3 -> 43.3 (65.2 -> 65.3),
-# 9-DOF simple gradient-guided 27.8 -> 25.6, 9-DOF agriculture velocity OSC 31.2 -> 26.4 (15.5 ->
-# 15.2) and 27.5 -> 24.7 (13.1 -> 13.3); whole units (sweeps of one case on one core, traced,
-# lowered and compiled s): 8-DOF agriculture acceleration OSC 28.3 -> 27.4 and 23.7 -> 23.2, 9-DOF
-# simple joint space 16.5 -> 16.5 and 17.7 -> 17.8, and their scenario builds 0.9-1.4 s longer (4
-# pairs, 10.3-14.5 s). Without LoopRotate instead (``-rotation-max-header-size=0``) the warehouse
-# guided unit compiled in 42.9 s but ran 103.4 s warm against 73.2. The whole study's compiling
-# 677 -> 635 s, its running part equal (724 / 721 s; fresh clones of 51d9de7 and d447f74, README).
+# ``visitAndClearUsers`` 5.8 % of a profile of that unit's process, about 2.8 s; without inlining
+# 2.1 % of a profile of the unit and a warm rerun, about 1.1 s). Not inlined, the same arithmetic:
+# the units' traces are equal to the bit. Measured (one core each, side by side, units of the study
+# on their stored scenes; backend compile s of the simulation, warm run s in brackets): 9-DOF
+# warehouse gradient-guided 52.3 -> 43.3 (65.2 -> 65.3), 9-DOF simple gradient-guided 27.8 -> 25.6,
+# 9-DOF agriculture velocity OSC 31.2 -> 26.4 (15.5 -> 15.2) and 27.5 -> 24.7 (13.1 -> 13.3); whole
+# units (sweeps of one case on one core, traced, lowered and compiled s): 8-DOF agriculture
+# acceleration OSC 28.3 -> 27.4 and 23.7 -> 23.2, 9-DOF simple joint space 16.5 -> 16.5 and 17.7 ->
+# 17.8, and their scenario builds 0.9-1.4 s longer (4 pairs, 10.3-14.5 s). Without LoopRotate
+# instead (``-rotation-max-header-size=0``) the warehouse guided unit compiled in 42.9 s but ran
+# 103.4 s warm against 73.2. The whole study's compiling 677 -> 635 s, its running part equal (724
+# / 721 s; fresh clones of 51d9de7 and d447f74, README).
 LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000,"
                   "-forget-scev-loop-unroll=true,-inline-threshold=-20000",
                   "--xla_backend_optimization_level=1")
