@@ -14,11 +14,12 @@ Pipeline per (arm, case) (thesis Fig. 3.10, SPEC section 10):
    the solver it integrates with and the shapes it is padded to, so ``--solver``, a change of the
    default or another set of cases recomputes the runs it affects and nothing else).
 
-``jobs > 1`` runs the groups in that many worker processes (``spawn``): first the builds (one
-group per arm and case), then the simulations (one group per arm and controller, its cases in one
-process so that they share the compilation). XLA compiles on one thread, so on a CPU machine two
-workers keep two cores busy through the compile-heavy parts; each worker is pinned to a core of its
-own (two unpinned XLA processes contend for both cores: 1.3-1.7x slower, see :func:`_worker_start`).
+``jobs > 1`` runs the groups in that many worker processes (``spawn``, the same ones for both
+phases): first the builds (one group per arm and case), then the simulations (one group per arm
+and controller, its cases in one process so that they share the compilation). XLA compiles on one
+thread, so on a CPU machine two workers keep two cores busy through the compile-heavy parts; each
+worker is pinned to a core of its own (two unpinned XLA processes contend for both cores: 1.3-1.7x
+slower, see :func:`_worker_start`).
 The results are the same as with one process, value for value: each unit is a deterministic
 function of its configuration, computed under the workers' XLA flags (the command line gives its
 own process those too, :func:`adopt_worker_xla_flags`), with its batch in one chunk whatever the
@@ -477,9 +478,10 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     """Run (or resume) a sweep; returns the results folder. (``_worker_init``: a picklable callable
     each worker process runs first; tests install their stand-in units with it.)
 
-    The scenario builds run first, then the simulations (:func:`_units`). Every group ends with
-    ``jax.clear_caches()`` (see :func:`_run_group`): with ``jobs=1`` the groups run in the calling
-    process, whose other jitted functions then compile again on their next call.
+    The scenario builds run first, then the simulations (:func:`_units`), with ``jobs > 1`` in the
+    same worker processes (:func:`_worker_pool`, closed before the results are written). Every
+    group ends with ``jax.clear_caches()`` (see :func:`_run_group`): with ``jobs=1`` the groups run
+    in the calling process, whose other jitted functions then compile again on their next call.
     """
     out = Path(cfg.out)
     store = UnitStore(out)
@@ -487,21 +489,25 @@ def run_sweep(cfg: SweepConfig, *, _worker_init=None) -> Path:
     phases = _units(cfg)
     progress = Progress(sum(len(g) for ph in phases for g in ph.values()), "units",
                         enabled=cfg.progress and leader)
-    for groups in phases:
-        todo = {}
-        for gk, group in groups.items() if leader else ():
-            missing = [u for u in group if not store.has(u[4], u[5])]
-            if len(missing) < len(group):
-                progress.skip(len(group) - len(missing))
-            if missing:
-                todo[gk] = missing
-        if cfg.distributed:  # every process runs process 0's list of missing units, in its order
-            todo = broadcast_object(todo)
-        if cfg.jobs > 1 and todo:  # even one group: in-process units would round otherwise
-            _run_parallel(cfg, todo, progress, _worker_init)
-        else:
-            for units in todo.values():
-                _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
+    with contextlib.ExitStack() as stack:
+        workers = None  # started for the first phase with work, kept for the next
+        for groups in phases:
+            todo = {}
+            for gk, group in groups.items() if leader else ():
+                missing = [u for u in group if not store.has(u[4], u[5])]
+                if len(missing) < len(group):
+                    progress.skip(len(group) - len(missing))
+                if missing:
+                    todo[gk] = missing
+            if cfg.distributed:  # every process runs process 0's list of missing units, in its order
+                todo = broadcast_object(todo)
+            if cfg.jobs > 1 and todo:  # even one group: in-process units would round otherwise
+                if workers is None:
+                    workers = stack.enter_context(_worker_pool(cfg, _worker_init))
+                _run_parallel(cfg, todo, progress, workers)
+            else:
+                for units in todo.values():
+                    _run_group(cfg, units, lambda done: progress.advance(note=f"{done[0]} ({done[1]:.1f}s)"))
     if cfg.distributed:
         barrier("redman_jax.run_sweep: units done")
     if leader:
@@ -604,9 +610,9 @@ def _thread_affinities() -> list[set[int]]:
     return out
 
 
-def _worker_start(cores, init) -> None:
+def _worker_start(cores, init, progress=None) -> None:
     """Worker initializer: pin this process to a core of its own (taken from the queue ``cores``),
-    then run ``init``.
+    keep the parent's ``progress`` queue, then run ``init``.
 
     Why: each process's XLA CPU runtime keeps a thread pool as wide as the cores it may run on
     when jax is imported (it runs independent operations of a program at once), and two unpinned
@@ -616,25 +622,23 @@ def _worker_start(cores, init) -> None:
     included) 80-86 s against 46-50 s. Alone, unpinned was faster (19.7 against 25.0 s), but a lone
     worker is pinned too, for results that do not depend on the number of workers
     (:func:`_worker_cores`). ``taskset`` pins before jax is imported, so the pool is one thread
-    wide; a worker imports jax before this initializer runs, so :func:`_run_parallel` spawns the
+    wide; a worker imports jax before this initializer runs, so :func:`_worker_pool` spawns the
     workers from a thread pinned to one core (:func:`_one_core_while_spawning`) to get that."""
-    import queue as queue_mod
+    global _PROGRESS
 
     _exit_with_parent()
-    if cores is not None:
-        try:
-            _pin_threads(cores.get_nowait())
-        except queue_mod.Empty:
-            pass
+    # one entry per worker the pool may start (cfg.jobs)
+    if cores is not None and not cores.empty():
+        _pin_threads(cores.get())
+    _PROGRESS = progress
     if init is not None:
         init()
 
 
 def _exit_with_parent() -> None:
-    """In a process ``multiprocessing`` started (a worker, the queues' manager): leave as soon as
-    the parent is gone. A sweep's main process killed alone (``kill -9``, the OOM killer, a
-    scheduler) otherwise left its workers computing their groups and then idling for ever, with
-    the manager beside them (about 450 MB each)."""
+    """In a process ``multiprocessing`` started (a worker): leave as soon as the parent is gone. A
+    sweep's main process killed alone (``kill -9``, the OOM killer, a scheduler) otherwise left its
+    workers computing their groups and then idling for ever (about 450 MB each)."""
     import multiprocessing as mp
     import os
     import threading
@@ -885,50 +889,94 @@ def _worker_xla_flags(extra=None):
             os.environ["XLA_FLAGS"] = before
 
 
-def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, init=None) -> None:
-    """The groups in ``cfg.jobs`` spawned worker processes, longest expected first, each worker
-    pinned to a core of its own where there are enough (:func:`_worker_start`). Units are saved
-    by the workers as they finish, so an interrupted sweep resumes from there."""
-    import functools
-    import multiprocessing as mp
-    import queue as queue_mod
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+# the parent's end of the progress queue, in a worker (set by _worker_start)
+_PROGRESS = None
 
-    order = sorted(todo, key=lambda k: -_weight(k))
-    worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
-    jobs = min(cfg.jobs, len(todo))
-    from multiprocessing.managers import SyncManager
+
+@contextlib.contextmanager
+def _worker_pool(cfg: SweepConfig, init=None):
+    """``cfg.jobs`` spawned worker processes for every phase of a sweep (:func:`_run_parallel`),
+    each pinned to a core of its own where there are enough (:func:`_worker_start`); yields
+    ``(pool, progress_queue)``. The pool spawns a worker when a group finds none idle, so a phase
+    of one group starts one, and the workers of the builds go on with the simulations.
+
+    Why one pool: a pool per phase spawned its workers, imported jax in them and shut them down
+    again between the phases, and each started a queues' manager (a process of its own, which
+    imports this package: about 2 s) before its workers; meanwhile both cores were idle. A sweep
+    of 4 real units (7-DOF inspection and simple cases, seeds 1-2, joint space, ``jobs=2``, 2
+    idle cores, the two versions alternating, twice; with :class:`_PinnedSubmit`): the last
+    build's end to the first simulation's start 5.3 / 4.9 -> 0.1 / 0.1 s, the sweep's start to its
+    first unit 6.4 / 6.3 -> 2.1 / 2.0 s, the whole sweep 35.9 / 33.6 -> 25.5 / 23.6 s. The queues
+    are two plain ``SimpleQueue`` objects handed to each worker as it starts (a put is written at
+    once)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("spawn")
-    manager = SyncManager(ctx=ctx)
-    manager.start(initializer=_exit_with_parent)
-    with manager:
-        cores = None
-        pins = _worker_cores(jobs)
-        if pins:
-            cores = manager.Queue()
-            for c in pins:
-                cores.put(c)
-        start = functools.partial(_worker_start, cores, init)
-        with (_one_core_while_spawning(pins[0] if pins else None), _worker_xla_flags(),
-              ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=start) as pool):
-            q = manager.Queue()
-            pending = {pool.submit(_run_group, worker_cfg, todo[k], q.put) for k in order}
+    cores = None
+    pins = _worker_cores(cfg.jobs)
+    if pins:
+        cores = ctx.SimpleQueue()
+        for c in pins:
+            cores.put(c)
+    progress = ctx.SimpleQueue()
+    start = functools.partial(_worker_start, cores, init, progress)
+    # pinned while the pool may spawn: every submit of every phase (see _one_core_while_spawning)
+    with (_one_core_while_spawning(pins[0] if pins else None), _worker_xla_flags(),
+          ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool):
+        yield _PinnedSubmit(pool, pins), progress
 
-            def drain():
-                while True:
-                    try:
-                        name, seconds = q.get_nowait()
-                    except queue_mod.Empty:
-                        return
-                    progress.advance(note=f"{name} ({seconds:.1f}s)")
 
-            while pending:
-                finished, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
-                for f in finished:
-                    f.result()  # re-raises a worker's error here
-                drain()
-            drain()
+class _PinnedSubmit:
+    """``submit`` of a process pool that spawns its workers on demand, from the calling thread
+    (Python >= 3.11, at most one per submit): the calling thread is pinned to the next of ``pins``
+    in turn before each, so that the workers start on cores of their own and import jax side by
+    side, not both on the first core (the 4-unit sweep of :func:`_worker_pool` with one pool: its
+    start to the first unit 6.0-6.5 s, 2.1-3.2 s so; two runs each). Each worker then pins itself
+    to the core the queue gives it (:func:`_worker_start`); one thread wide either way. (Python
+    3.10 spawns all of them at the first submit, both from the first core, as before.)"""
+
+    def __init__(self, pool, pins):
+        self.pool, self.pins, self.n = pool, list(pins), 0
+
+    def submit(self, fn, *args):
+        import os
+
+        if self.pins:
+            os.sched_setaffinity(0, {self.pins[self.n % len(self.pins)]})
+            self.n += 1
+        return self.pool.submit(fn, *args)
+
+
+def _run_group_in_worker(cfg: SweepConfig, units: list) -> None:
+    """:func:`_run_group` in a worker of :func:`_worker_pool`, each unit reported to the parent."""
+    _run_group(cfg, units, _PROGRESS.put if _PROGRESS is not None else None)
+
+
+def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, workers) -> None:
+    """The groups of one phase in the workers of :func:`_worker_pool` (``workers``), longest
+    expected first. Units are saved by the workers as they finish, so an interrupted sweep resumes
+    from there."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    pool, queue = workers
+    order = sorted(todo, key=lambda k: -_weight(k))
+    worker_cfg = dataclasses.replace(cfg, progress=False, figures=False, jobs=1)
+    pending = {pool.submit(_run_group_in_worker, worker_cfg, todo[k]) for k in order}
+
+    def drain():
+        # a worker's put has reached the pipe before its group's result does (SimpleQueue writes
+        # at once), so a phase's last units are read here before the next phase starts
+        while not queue.empty():
+            name, seconds = queue.get()
+            progress.advance(note=f"{name} ({seconds:.1f}s)")
+
+    while pending:
+        finished, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
+        for f in finished:
+            f.result()  # re-raises a worker's error here
+        drain()
+    drain()
 
 
 def collect_rows(cfg: SweepConfig, store: UnitStore) -> list[dict]:
