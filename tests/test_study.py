@@ -280,23 +280,44 @@ def _config(out):
                        controllers=("velocity", "gradient"), figures=False, progress=False)
 
 
-def test_report_renders_in_a_process_with_the_workers_flags(monkeypatch, tmp_path):
+def test_report_renders_in_a_process_with_the_report_flags(monkeypatch, tmp_path):
     """``render_report`` (the sweep's figures and report, ``redman-jax plot``): on a CPU backend in
-    a spawned process whose ``XLA_FLAGS`` add the workers' emitter flags but not their loop
-    hoisting (this process's are unchanged); an error there is raised here."""
+    a spawned process whose ``XLA_FLAGS`` add the report's flags (the workers' emitter flags, LLVM's
+    level 0) to this process's as they were before it adopted the workers' (``study``), so without
+    the workers' loop hoisting; this process's are unchanged; an error there is raised here."""
     import _fake_units
 
-    from redman_jax._study import EMITTER_XLA_FLAGS, LOOP_XLA_FLAGS, _with_flags, _xla_accepts, render_report
+    from redman_jax import _study
+    from redman_jax._study import LOOP_XLA_FLAGS, REPORT_XLA_FLAGS, _with_flags, _xla_accepts, render_report
 
     tests_dir = os.path.dirname(os.path.abspath(__file__))
     monkeypatch.setenv("PYTHONPATH", tests_dir + os.pathsep + os.environ.get("PYTHONPATH", ""))
     before = os.environ.get("XLA_FLAGS", "")
-    render_report(tmp_path, make=_fake_units.report_probe)
-    pid, flags = (tmp_path / "probe.txt").read_text().split("\n")
-    assert int(pid) != os.getpid() and os.environ.get("XLA_FLAGS", "") == before
-    want = _with_flags(before, EMITTER_XLA_FLAGS)
-    assert flags == (want if _xla_accepts(want) else before)
+    want = _with_flags(before, REPORT_XLA_FLAGS)
+    assert "--xla_backend_optimization_level=0" in want.split() or "--xla_backend_optimization_level" in before
+    accepted = _xla_accepts(want)
+
+    def probe():
+        render_report(tmp_path, make=_fake_units.report_probe)
+        pid, flags = (tmp_path / "probe.txt").read_text().split("\n")
+        assert int(pid) != os.getpid()
+        return flags
+
+    # redman-jax plot: the process never adopted the workers' flags (a test before may have made
+    # this one adopt them: a command line run in this process before its backend started)
+    monkeypatch.setattr(_study, "_FLAGS_BEFORE_ADOPTION", None)
+    flags = probe()
+    assert os.environ.get("XLA_FLAGS", "") == before
+    assert flags == (want if accepted else before)
     assert not any(f in flags.split() for f in LOOP_XLA_FLAGS if f not in before.split())
+    # redman-jax study: the command line gave this process the workers' flags first; the report
+    # starts from the flags it had before, not from the workers'
+    adopted = _with_flags(before, _study.WORKER_XLA_FLAGS)
+    monkeypatch.setattr(_study, "_FLAGS_BEFORE_ADOPTION", before)
+    monkeypatch.setenv("XLA_FLAGS", adopted)
+    flags = probe()
+    assert os.environ["XLA_FLAGS"] == adopted
+    assert flags == (want if accepted else adopted)
     (tmp_path / "fail").touch()
     with pytest.raises(RuntimeError, match="the report failed"):
         render_report(tmp_path, make=_fake_units.report_probe)
@@ -856,8 +877,9 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
 
     WORKER_XLA_FLAGS = _worker_flags()
 
-    code = ("import os, sys; from redman_jax._study import prepare_sweep_process; "
+    code = ("import os, sys; from redman_jax import _study; from redman_jax._study import prepare_sweep_process; "
             "prepare_sweep_process(sys.argv[1]); import jax.numpy as j; j.zeros(1).block_until_ready(); "
+            "print(repr(_study._FLAGS_BEFORE_ADOPTION)); "
             "print(len(os.sched_getaffinity(0))); print(os.environ.get('XLA_FLAGS', ''))")
     env = dict(os.environ)
     cores = len(os.sched_getaffinity(0))
@@ -865,10 +887,12 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
         done = subprocess.run([sys.executable, "-c", code, jobs], capture_output=True, text=True, env=env,
                               timeout=300)
         assert done.returncode == 0, done.stderr[-2000:]
-        n, flags = done.stdout.splitlines()[-2:]
+        kept, n, flags = done.stdout.splitlines()[-3:]
         assert int(n) == want
         if _xla_accepts(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)):
             assert set(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS).split()) <= set(flags.split())
+        # the flags before, from which the report's process starts (render_report)
+        assert kept == (repr(env.get("XLA_FLAGS", "")) if flags != env.get("XLA_FLAGS", "") else "None")
     import jax.numpy as jnp
 
     jnp.zeros(1).block_until_ready()  # this process's backend runs: nothing changes

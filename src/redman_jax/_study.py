@@ -535,15 +535,17 @@ def render_report(out, make=None) -> None:
     """Write the figures and ``report.md`` of the results folder ``out``
     (:func:`~redman_jax._report.make_report`, or ``make(out)``, a picklable callable).
 
-    On a CPU backend in a spawned process started with the workers' emitter flags
-    (:data:`EMITTER_XLA_FLAGS`, not :data:`LOOP_XLA_FLAGS`: the report compiles much and runs
-    little), which compile faster: the report's figures rebuild scenes and
+    On a CPU backend in a spawned process started with :data:`REPORT_XLA_FLAGS` (the workers'
+    emitter flags and LLVM's level 0; not :data:`LOOP_XLA_FLAGS`: the report compiles much and
+    runs little) added to the ``XLA_FLAGS`` this process had before it adopted the workers' (so
+    ``study`` and ``plot`` draw with the same flags): the report's figures rebuild scenes and
     re-simulate, compiling several programs. ``redman-jax plot`` on the results folder of a
     9-DOF sweep of the three tracking controllers (2 idle cores, two runs each, alternating):
-    36.8 and 37.0 s so, 47.6 and 48.6 s with ``make_report`` in the calling process and JAX's own
-    flags; the default study's folder: 34.2 and 37.0 s against 44.2 and 47.8 s; the same
-    ``report.md``. The rows, the table and the traces are written before and do
-    not change; the figures can differ from an in-process report by rounding. Elsewhere (an
+    36.8 and 37.0 s with the emitter flags, 47.6 and 48.6 s with ``make_report`` in the calling
+    process and JAX's own flags; the default study's folder: 34.2 and 37.0 s against 44.2 and 47.8
+    s; the same ``report.md``. The rows, the table and the traces are written before and do not
+    change; the figures can differ by rounding from a report drawn with other flags, and Fig.
+    3.7's perfect-controller path visibly so (its local-minima estimates move). Elsewhere (an
     accelerator, whose memory a second process would claim too) in this process."""
     import jax
 
@@ -555,7 +557,8 @@ def render_report(out, make=None) -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    with _worker_xla_flags(EMITTER_XLA_FLAGS), ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+    with (_worker_xla_flags(REPORT_XLA_FLAGS, base=_FLAGS_BEFORE_ADOPTION),
+          ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool):
         pool.submit(make, out).result()  # re-raises the report's error here
 
 
@@ -758,6 +761,18 @@ LOOP_XLA_FLAGS = ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_thr
                   "-forget-scev-loop-unroll=true,-inline-threshold=-20000",
                   "--xla_backend_optimization_level=1")
 
+# What the report's process starts with (render_report, on a CPU backend; added to the flags this
+# process had before it adopted the workers'): the emitter flags, and LLVM's optimisation level 0.
+# The report compiles about 10 programs (the figures' scenes and re-simulations, Fig. 3.6's three
+# step responses the largest) and runs each for a second or two. The default study's folder (2
+# idle cores, the two alternating, twice; make_report in a process started with the flags):
+# 39.7 / 39.6 s with the workers' flags (level 1), which the command line's report inherited
+# before, 29.1 / 25.7 s with these; one core, figures in turn: backend compiling 40.8 / 37.7 ->
+# 23.8 / 18.0 s. The same report.md; two figures differ, Fig. 4.9's field slice in 3 pixels and
+# Fig. 3.7's perfect-controller path visibly (descending among virtual obstacles placed from
+# Hessian-based estimates, it moves with the rounding).
+REPORT_XLA_FLAGS = EMITTER_XLA_FLAGS + ("--xla_backend_optimization_level=0",)
+
 # What the sweep's workers (and a --jobs 1 sweep's own process) start with on a CPU machine
 # (:func:`_worker_flags`: the loop flags only where the backend will be the CPU; LLVM's level is
 # also an accelerator backend's).
@@ -822,13 +837,21 @@ def adopt_worker_xla_flags(extra=None) -> bool:
     runs already, or this jaxlib refuses the flags)."""
     import os
 
+    global _FLAGS_BEFORE_ADOPTION
+
     started = _backend_started()
     before = os.environ.get("XLA_FLAGS", "")
     flags = _with_flags(before, _worker_flags() if extra is None else extra)
     if started or flags == before or not _xla_accepts(flags):
         return False
+    if _FLAGS_BEFORE_ADOPTION is None:
+        _FLAGS_BEFORE_ADOPTION = before
     os.environ["XLA_FLAGS"] = flags
     return True
+
+
+# XLA_FLAGS as this process had them before adopt_worker_xla_flags extended them (None: never)
+_FLAGS_BEFORE_ADOPTION = None
 
 
 def compute_here_as_a_worker() -> bool:
@@ -870,14 +893,15 @@ def prepare_sweep_process(jobs, distributed: bool = False) -> None:
 
 
 @contextlib.contextmanager
-def _worker_xla_flags(extra=None):
+def _worker_xla_flags(extra=None, base=None):
     """Run the body with ``XLA_FLAGS`` extended by ``extra`` in this process's environment, which
     the workers spawned meanwhile inherit (this process's backend has started; it is unaffected);
-    unchanged if this jaxlib does not accept them. Restored afterwards."""
+    unchanged if this jaxlib does not accept them. Restored afterwards. ``base``: the flags to
+    extend instead of this process's (a string)."""
     import os
 
     before = os.environ.get("XLA_FLAGS")
-    flags = _with_flags(before or "", _worker_flags() if extra is None else extra)
+    flags = _with_flags((before or "") if base is None else base, _worker_flags() if extra is None else extra)
     if flags != (before or "") and _xla_accepts(flags):
         os.environ["XLA_FLAGS"] = flags
     try:
