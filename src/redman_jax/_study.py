@@ -921,8 +921,9 @@ _PROGRESS = None
 def _worker_pool(cfg: SweepConfig, init=None):
     """``cfg.jobs`` spawned worker processes for every phase of a sweep (:func:`_run_parallel`),
     each pinned to a core of its own where there are enough (:func:`_worker_start`); yields
-    ``(pool, progress_queue)``. The pool spawns a worker when a group finds none idle, so a phase
-    of one group starts one, and the workers of the builds go on with the simulations.
+    ``(submitter, progress_queue)`` (the pool's submit, :class:`_PinnedSubmit`). The pool spawns a
+    worker when a group finds none idle, so a phase of one group starts one, and the workers of the
+    builds go on with the simulations.
 
     Why one pool: a pool per phase spawned its workers, imported jax in them and shut them down
     again between the phases, and each started a queues' manager (a process of its own, which
