@@ -613,7 +613,7 @@ def _thread_affinities() -> list[set[int]]:
     return out
 
 
-def _worker_start(cores, init, progress=None) -> None:
+def _worker_start(cores, init, progress) -> None:
     """Worker initializer: pin this process to a core of its own (taken from the queue ``cores``),
     keep the parent's ``progress`` queue, then run ``init``.
 
@@ -946,7 +946,8 @@ def _worker_pool(cfg: SweepConfig, init=None):
             cores.put(c)
     progress = ctx.SimpleQueue()
     start = functools.partial(_worker_start, cores, init, progress)
-    # pinned while the pool may spawn: every submit of every phase (see _one_core_while_spawning)
+    # the calling thread pinned while the pool may spawn, through every submit of every phase (see
+    # _one_core_while_spawning; _PinnedSubmit moves it to the next core before each), then restored
     with (_one_core_while_spawning(pins[0] if pins else None), _worker_xla_flags(),
           ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool):
         yield _PinnedSubmit(pool, pins), progress
@@ -975,7 +976,7 @@ class _PinnedSubmit:
 
 def _run_group_in_worker(cfg: SweepConfig, units: list) -> None:
     """:func:`_run_group` in a worker of :func:`_worker_pool`, each unit reported to the parent."""
-    _run_group(cfg, units, _PROGRESS.put if _PROGRESS is not None else None)
+    _run_group(cfg, units, _PROGRESS.put)
 
 
 def _run_parallel(cfg: SweepConfig, todo: dict, progress: Progress, workers) -> None:
