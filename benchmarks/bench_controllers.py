@@ -4,7 +4,13 @@ Thesis figures (MATLAB, per sample): acceleration 2.6 ms, velocity 2.2 ms, joint
 gradient-guided 2.3 ms (SPEC R1). Target (issue 4): <= 10 us per state at batch 1024.
 
 For each controller: ``jit`` (batch 1) and ``jit(vmap)`` at batch 20 and 1024, warm, with
-``block_until_ready``; compile time separately. A deliberately naive layout of the acceleration OSC
+``block_until_ready``; compile time separately. With batch 1 also "loop": 1024 (or the largest
+batch's) states one after another in one ``jit(lax.map)`` call, per state (a single call is mostly
+per-call dispatch; the loop is the control law's own sequential time, what the study reports as
+``t_controller_per_sample``). Under JAX's default XLA flags each iteration still runs as a
+sequence of kernels; the study's workers compile the loop as one function (``XLA_FLAGS`` =
+``redman_jax._study.EMITTER_XLA_FLAGS + LOOP_XLA_FLAGS``, joined by spaces): set those for the
+study's figure. A deliberately naive layout of the acceleration OSC
 (separate FK passes for every Jacobian, POI Jacobians by ``jax.jacfwd``, a full SVD for sigma_min, the
 reference per-point vmap of ``_fields.obstacle_field_gradient``, ``M`` and ``c + g`` formed
 explicitly, ``J_dot q_dot`` by a jvp) is timed in the same run as "before".
@@ -34,6 +40,7 @@ from redman_jax._controllers import CONTROLLERS
 from redman_jax._nullspace import obstacle_gradients
 
 THESIS_MS = {"acceleration": 2.6, "velocity": 2.2, "joint_space": 1.7, "gradient": 2.3}
+LOOP_STATES = 1024  # states of the "loop" row, at least
 
 
 def scene(rng):
@@ -126,7 +133,7 @@ def main():
     arm = rj.thesis_arm(args.dof)
     n = arm.n_dof
     obs = scene(rng)
-    bmax = max(int(b) for b in args.batches.split(","))
+    bmax = max(max(int(b) for b in args.batches.split(",")), LOOP_STATES)  # the batches take the first B
     qs = jnp.asarray(np.asarray(arm.q0) + rng.uniform(-0.3, 0.3, (bmax, n)))
     qds = jnp.asarray(rng.normal(size=(bmax, n)) * 0.1)
     p, quat = jax.vmap(lambda q: rj.end_effector_pose(arm, q))(qs)
@@ -172,6 +179,17 @@ def main():
                 one = jax.tree.map(lambda x: x[0], (sl[0], sl[1], z, sl[2]))
                 f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
                 us, us_min, tc = timed(f, gains, *one, batch=1)
+                # the same states one after another in one call (lax.map): the control law's own
+                # time per sample, without the per-call dispatch (the study's t_controller_per_sample)
+                allz = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(qs) if ctrl is not None else jnp.zeros((bmax, 0))
+                allz = jnp.zeros((bmax, 0)) if not jax.tree.leaves(allz) else allz
+                fl = jax.jit(lambda g, q, qd, z, ref, call=call: jax.lax.map(lambda a: call(g, *a), (q, qd, z, ref)))
+                lus, lus_min, ltc = timed(fl, gains, qs, qds, allz, refs, batch=bmax)
+                base = THESIS_MS.get(name.replace("_naive", ""))
+                ratio = f"{base * 1e3 / lus:8.0f}x" if base else "       -"
+                rows.append((name, -bmax, lus, lus_min, ltc))
+                print(f"{name:20s} loop  {bmax:5d}: {lus:9.2f} us/state median, {lus_min:7.2f} min  (thesis/this "
+                      f"{ratio})  compile {ltc:5.1f} s", flush=True)
             else:
                 f, a = batched(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref),
                                (sl[0], sl[1], z, sl[2]), B, naive=ctrl is None)

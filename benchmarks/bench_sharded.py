@@ -62,7 +62,7 @@ def main():
         sim._batch_mesh = (lambda s: None) if variant == "jit partitioning" else real_mesh
         pipe.shard_batch = (lambda tree: tree) if variant == "one device" else real_shard
         try:
-            out = pipe.run_controller(arm, payload, ctrl, shapes=shapes, n_timing_calls=1)
+            out = pipe.run_controller(arm, payload, ctrl, shapes=shapes, timing_repeats=1)
         finally:
             sim._batch_mesh, pipe.shard_batch = real_mesh, real_shard
         return out["timings"]["sim_s"], out["rows"]

@@ -109,7 +109,7 @@ def test_custom_controller(tmp_path, env):
     assert 0.0 < num(r["mean_pos_error"]) < 0.05
     assert r["success"] == "True" and r["diverged"] == "False" and r["out_of_steps"] == "False"
     assert int(r["n_steps"]) >= int(r["n_samples"]) > 50
-    assert 0.0 < num(r["t_controller_per_sample"]) < 0.1  # one control-law evaluation, seconds
+    assert 0.0 < num(r["t_controller_per_sample"]) < 0.1  # the control law per sample, seconds
     assert (out / "config.json").is_file() and (out / "traces" / "7dof_inspection_os_pd.npz").is_file()
 
 

@@ -129,3 +129,69 @@ def test_wall_time_per_sample_divides_by_all_samples_of_a_batch(monkeypatch):
     batch = wall_time_per_sample(f, x, n_samples=np.array([10, 10, 10, 10]), warmup=0)
     monkeypatch.undo()
     assert one == 1.0 / 10 and batch == 1.0 / 40
+
+
+def _timing_scene():
+    """A 7-DOF arm, the velocity OSC, an environment with a sphere and a box in reach, and K = 6
+    samples of distinct states and reference samples."""
+    import redman_jax as rj
+    from redman_jax._control_types import ControlState, RefSample, make_environment
+    from redman_jax._controllers import CONTROLLERS
+
+    arm = rj.thesis_arm(7)
+    n, K = arm.n_dof, 6
+    rng = np.random.default_rng(3)
+    ctrl = CONTROLLERS["velocity"]()
+    obs = rj.make_obstacles(spheres=[(np.eye(3), [0.35, 0.0, 0.9], [0.08])],
+                            boxes=[(np.eye(3), [-0.3, 0.3, 1.0], [0.1, 0.05, 0.2])], capacities=(1, 1, 1))
+    env = make_environment(obs, jnp.asarray([0.3, 0.2, 0.8]), jnp.asarray([1.0, 0.0, 0.0, 0.0]))
+    q = jnp.asarray(np.asarray(arm.q0) + rng.uniform(-0.4, 0.4, (K, n)))
+    qd = jnp.asarray(rng.normal(0.0, 0.3, (K, n)))
+    z = jax.vmap(lambda a, b: ctrl.init_state(arm, a, b))(q, qd)
+    states = ControlState(t=jnp.arange(K) * 0.01, q=q, qd=qd, z=z)
+    quat = rng.normal(size=(K, 4))
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    z3, zn = jnp.zeros((K, 3)), jnp.zeros((K, n))
+    refs = RefSample(p=jnp.asarray(rng.uniform(-0.3, 0.3, (K, 3)) + [0, 0, 0.9]), v=jnp.asarray(rng.normal(size=(K, 3))),
+                     a=z3, quat=jnp.asarray(quat), omega=z3, omega_dot=z3, rot=jnp.asarray([1.0, 0.0] * (K // 2)),
+                     q=zn, qd=zn, qdd=zn)
+    return arm, ctrl, ctrl.default_gains(), states, refs, env
+
+
+def test_the_timed_loop_is_the_control_law_at_every_sample():
+    """What ``controller_time_per_sample`` times (``control_torques``) returns, sample by sample,
+    the torques of single calls of the controller."""
+    from redman_jax._metrics import control_torques
+
+    arm, ctrl, gains, states, refs, env = _timing_scene()
+    taus = jax.jit(control_torques, static_argnums=0)(ctrl, gains, arm, states, refs, env)
+    for k in range(states.q.shape[0]):
+        one = ctrl(gains, arm, jax.tree.map(lambda x: x[k], states), jax.tree.map(lambda x: x[k], refs), env).tau
+        np.testing.assert_allclose(np.asarray(taus[k]), np.asarray(one), rtol=1e-9, atol=1e-9)
+    assert float(jnp.std(taus[:, 0])) > 0  # distinct samples, distinct torques
+
+
+def test_controller_time_per_sample_divides_one_loop_call_by_its_samples(monkeypatch):
+    """One call over the K samples, timed (a fake clock: every call takes 1 s), divided by K; the
+    least of ``repeats`` calls. Bad shapes are refused naming the field."""
+    import itertools
+
+    import redman_jax._metrics as metrics
+    from redman_jax._metrics import controller_call_time, controller_time_per_sample
+
+    arm, ctrl, gains, states, refs, env = _timing_scene()
+    real = controller_time_per_sample(ctrl, gains, arm, states, refs, env, repeats=2)
+    assert 0.0 < real < 0.01
+    assert 0.0 < controller_call_time(ctrl, gains, arm, jax.tree.map(lambda x: x[0], states),
+                                      jax.tree.map(lambda x: x[0], refs), env, n_calls=3) < 0.1
+    clock = itertools.count()
+    monkeypatch.setattr(metrics.time, "perf_counter", lambda: float(next(clock)))
+    assert controller_time_per_sample(ctrl, gains, arm, states, refs, env, repeats=3) == 1.0 / 6
+    monkeypatch.undo()
+    one = jax.tree.map(lambda x: x[0], states)
+    with pytest.raises(ValueError, match=r"states.q must have shape \(K, 7\)"):
+        controller_time_per_sample(ctrl, gains, arm, one, refs, env)
+    with pytest.raises(ValueError, match="leading sample axis of states.q"):
+        controller_time_per_sample(ctrl, gains, arm, states, jax.tree.map(lambda x: x[:4], refs), env)
+    with pytest.raises(ValueError, match="^repeats: expected an int >= 1"):
+        controller_time_per_sample(ctrl, gains, arm, states, refs, env, repeats=0)

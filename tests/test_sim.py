@@ -777,3 +777,40 @@ def test_stack_scenarios_refuses_mixed_shapes_and_pads_on_request():
         assert bool(batch.metrics.success[i]) == bool(one.metrics.success)
         np.testing.assert_allclose(float(batch.metrics.mean_pos_err[i]), float(one.metrics.mean_pos_err),
                                    rtol=1e-9)
+
+
+def test_the_controller_is_timed_at_the_states_of_a_run_that_did_not_diverge():
+    """``_pipeline._timing_samples``: the states the batch's first undiverged run saved (its valid
+    samples repeated up to the capacity, one timing program per shape), the reference samples held
+    then with the IK's joint reference as the simulator holds it, and ``init_state`` as ``z``."""
+    import types
+
+    from redman_jax._controllers import CONTROLLERS
+    from redman_jax._pipeline import _timing_samples
+
+    sc, j = joint_motion_scenario(ARM, DQ_FREE, 0.3, CAP)
+    scen = stack_scenarios([sc, sc])
+    j = (j[0], j[1] + 1.0, j[2])  # a joint velocity reference nonzero at the last valid sample too
+    jref = tuple(jnp.stack([x, x]) for x in j)
+    n_valid = int(sc.reference.n_samples)
+    rng = np.random.default_rng(1)
+    res = types.SimpleNamespace(diverged=np.array([True, False]), mask=np.arange(CAP)[None] < np.array([[CAP], [n_valid]]),
+                                q=rng.normal(size=(2, CAP, 7)), qd=rng.normal(size=(2, CAP, 7)))
+    idx = np.arange(CAP) % n_valid
+    js = CONTROLLERS["joint_space"]()
+    states, refs, env = _timing_samples(ARM, scen, jref, js, res)
+    np.testing.assert_array_equal(np.asarray(states.q), res.q[1][idx])
+    np.testing.assert_array_equal(np.asarray(states.qd), res.qd[1][idx])
+    np.testing.assert_allclose(np.asarray(states.t), idx * TS, rtol=1e-15)
+    np.testing.assert_array_equal(np.asarray(refs.p), np.asarray(sc.reference.p)[idx])
+    jq = np.asarray(j[0])
+    jqd = np.concatenate([np.asarray(j[1]), np.zeros((CAP - len(j[1]), 7))])  # qd_d: N or N - 1 rows
+    np.testing.assert_array_equal(np.asarray(refs.q), jq[idx])
+    moving = idx < n_valid - 1  # the last sample holds q_{N-1} at rest (SPEC 6)
+    np.testing.assert_array_equal(np.asarray(refs.qd)[moving], jqd[idx[moving]])
+    assert np.any(~moving) and not np.any(np.asarray(refs.qd)[~moving])
+    assert env.obstacles.capacities == sc.obstacles.capacities
+    vel = CONTROLLERS["velocity"]()
+    states, refs, _ = _timing_samples(ARM, scen, None, vel, res)
+    np.testing.assert_array_equal(np.asarray(states.z), res.q[1][idx])  # q_r starts at q
+    assert not np.any(np.asarray(refs.q))  # no joint reference: zeros, as in the simulator

@@ -207,30 +207,54 @@ def test_cases_padded_to_common_shapes_share_one_compilation(horizon):
 
 
 def test_estimator_timing_times_the_update_the_simulation_runs(monkeypatch):
-    """``t_lme_per_sample`` times ``estimator_update`` with the run's own settings: its field
-    parameters, ``lme_mu``, ``lme_max_jump`` and buffer size (not the thesis defaults)."""
+    """``t_lme_per_sample`` times ``estimator_update`` with the run's own settings (its field
+    parameters, ``lme_mu``, ``lme_max_jump`` and buffer size, not the thesis defaults) along the
+    end-effector positions of the batch's first run that did not diverge, its valid samples
+    repeated up to the capacity; the timed scan is the update, sample after sample."""
+    import types
+
     from redman_jax import _metrics, _pipeline
     from redman_jax._fields import FieldParams
-    from redman_jax._guidance import estimator_update
+    from redman_jax._guidance import VirtualBuffer, estimator_update
 
     seen = {}
 
-    def fake_time_per_call(fn, *args, n_calls):
-        seen["fn"], seen["args"] = fn, args
+    def fake_wall_time_per_sample(fn, *args, n_samples, repeats):
+        seen.update(fn=fn, args=args, n_samples=n_samples, repeats=repeats)
         return 1.0
 
-    monkeypatch.setattr(_metrics, "time_per_call", fake_time_per_call)
+    monkeypatch.setattr(_metrics, "wall_time_per_sample", fake_wall_time_per_sample)
     field = FieldParams(a=0.002)
     params = dataclasses.replace(PARAMS, buffer_size=7, field=field, lme_mu=jnp.asarray(3e-5),
                                  lme_max_jump=jnp.asarray(0.5))
     scen = stack_scenarios([SCEN, SCEN])
-    assert _pipeline._lme_time(scen, 5, params, GAINS) == 1.0
-    x, goal, obs, buf, fp, mu, max_jump = seen["args"]
-    assert seen["fn"] is estimator_update
+    K = SCEN.reference.capacity
+    rng = np.random.default_rng(0)
+    p = np.asarray(SCEN.reference.p)[None] + rng.normal(0, 0.01, (2, K, 3))
+    n_valid = min(K, 5)
+    mask = np.zeros((2, K), bool)
+    mask[1, :n_valid] = True
+    res = types.SimpleNamespace(diverged=np.array([True, False]), mask=mask, p=p)
+    assert _pipeline._lme_time(scen, res, 4, params, GAINS) == 1.0
+    xs, goal, obs, buf, fp, mu, max_jump = seen["args"]
+    assert seen["fn"] is _pipeline._lme_scan and seen["n_samples"] == K and seen["repeats"] == 4
+    np.testing.assert_array_equal(np.asarray(xs), p[1][np.arange(K) % n_valid])
     assert buf.p.shape == (7, 3) and not np.any(np.asarray(buf.mask))
     assert fp is field
     assert float(mu) == 3e-5 and float(max_jump) == 0.5
     np.testing.assert_array_equal(np.asarray(goal), np.asarray(SCEN.goal_p))
+    # the scan is the estimator's update at each position in turn, the buffer carried
+    b = VirtualBuffer.empty(3, jnp.float64)
+    fp0 = FieldParams()
+    xs4 = np.asarray(SCEN.reference.p)[0] + rng.normal(0, 0.02, (4, 3))
+    b_scan, (x_scan, ok_scan) = _pipeline._lme_scan(jnp.asarray(xs4), SCEN.goal_p, SCEN.obstacles, b, fp0,
+                                                    jnp.asarray(1e-6), jnp.asarray(2.0))
+    for k in range(4):
+        b, x_min, ok = estimator_update(jnp.asarray(xs4[k]), SCEN.goal_p, SCEN.obstacles, b, fp0, 1e-6, 2.0)
+        np.testing.assert_allclose(np.asarray(x_scan[k]), np.asarray(x_min), rtol=1e-12, atol=1e-12)
+        assert bool(ok_scan[k]) == bool(ok)
+    np.testing.assert_allclose(np.asarray(b_scan.p), np.asarray(b.p), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(b_scan.mask), np.asarray(b.mask))
 
 
 def test_what_happens_after_the_stop_does_not_count():

@@ -197,6 +197,7 @@ from ._metrics import (
     per_run_mean as per_run_mean,
     failure_rate as failure_rate,
     controller_time_per_sample as controller_time_per_sample,
+    controller_call_time as controller_call_time,
 )
 from ._study import (
     SweepConfig as SweepConfig,

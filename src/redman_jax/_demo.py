@@ -44,7 +44,7 @@ def run_demo(arm_spec: str = "9", case: str = "simple", seed: int = 1, controlle
     out.mkdir(parents=True, exist_ok=True)
     arm = arm_from_spec(arm_spec, option="--arm")
     built = build_case(arm, case, [seed], max_retries=max_retries)
-    run = run_controller(arm, built, controller, n_timing_calls=50)
+    run = run_controller(arm, built, controller, timing_repeats=2)
     row, tr = run["rows"][0], run["traces"]
     import jax
 

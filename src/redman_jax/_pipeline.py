@@ -6,10 +6,11 @@ turns the results into table rows and per-sample traces. Both return plain dicts
 (what :class:`~redman_jax._store.UnitStore` pickles).
 
 Timing (thesis 3.5, SPEC section 10): planning and IK are measured as the warm wall time of one
-batched call divided by the number of samples it produced; the controller as the mean of jitted
-single evaluations (``controller_time_per_sample``); the local-minima estimator likewise per
-update. These are warm timings; each unit's compile time is measured by the sweep around it
-(``DIR/timing.csv``, :func:`~redman_jax._study.write_timing`).
+batched call divided by the number of samples it produced; the controller and the local-minima
+estimator likewise, one jitted call over a run's samples one after another divided by their
+number (``controller_time_per_sample``, :func:`_lme_time`). These are warm timings; each unit's
+compile time is measured by the sweep around it (``DIR/timing.csv``,
+:func:`~redman_jax._study.write_timing`).
 """
 
 from __future__ import annotations
@@ -147,24 +148,50 @@ def make_gains(controller, overrides: dict | None):
     return gains
 
 
-def _sample_inputs(arm, scen, controller, gains):
-    """A representative (state, reference, environment) for timing one control-law evaluation."""
-    from ._control_types import ControlState, RefSample, make_environment
-    from ._obstacles import used_bound_jit, with_used
+def _timing_rows(res, K: int):
+    """The run timed (the batch's first that did not diverge, the first if all did) and its valid
+    sample indices repeated in turn up to ``K`` rows."""
+    div = np.asarray(res.diverged)
+    i = int(np.argmin(div)) if div.size else 0
+    n_valid = max(int(np.asarray(res.mask[i]).sum()), 1)
+    return i, np.arange(K) % n_valid
 
-    s = _take(scen, 0)
+
+def _timing_samples(arm, scen, jref, controller, res):
+    """The samples the controller is timed at (:func:`~redman_jax._metrics.controller_time_per_sample`):
+    the states a run of the batch saved at its sample ends, with the reference samples held then,
+    and the environment, as the simulator sets them.
+
+    The run is the batch's first that did not diverge (the first if all did). Its valid samples
+    are repeated in turn up to the reference capacity (:func:`_timing_rows`), so the cases that share a compilation
+    (:func:`study_shapes`) share the timing program too. The controller state is
+    ``controller.init_state`` at each saved state (the velocity OSC's ``q_r``: the state's ``q``;
+    the run's own ``q_r`` is not saved); the joint reference (joint space) is the IK's."""
+    from ._control_types import ControlState, make_environment
+    from ._obstacles import used_bound_jit, with_used
+    from ._sim import _goal_sample, _ref_sample, joint_reference
+
+    i, idx = _timing_rows(res, scen.reference.capacity)
+    s = _take(scen, i)
     ref = s.reference
-    k = int(np.asarray(ref.n_samples)) // 2
+    K = ref.capacity
+    dtype = np.asarray(res.q).dtype
+    q = put(np.asarray(res.q[i])[idx])
+    qd = put(np.asarray(res.qd[i])[idx])
+    k = put(idx)
+    t = put(idx * float(np.asarray(ref.ts)))
+    z = jax.vmap(lambda a, b: controller.init_state(arm, a, b))(q, qd)
+    states = ControlState(t=t, q=q, qd=qd, z=z)
     n = arm.n_dof
-    q = put(arm.q0)
-    zero = put(np.zeros(n))  # jnp.zeros(n): the default float dtype
-    state = ControlState(t=put(0.0), q=q, qd=zero, z=controller.init_state(arm, q, zero))
-    rs = RefSample(p=take(ref.p, k), v=take(ref.v, k), a=take(ref.a, k), quat=take(ref.quat, k),
-                   omega=take(ref.omega, k), omega_dot=take(ref.omega_dot, k), rot=take(ref.rot, k),
-                   q=q, qd=zero, qdd=zero)
+    if controller.uses_guidance:
+        rot = put(np.asarray(res.rot[i])[idx])
+        refs = jax.vmap(lambda r: _goal_sample(s.goal_p, s.goal_quat, r, n, dtype))(rot)
+    else:
+        jr = None if jref is None else joint_reference(tuple(x[i] for x in jref), K)
+        refs = jax.vmap(lambda kk: _ref_sample(ref, jr, kk, n, dtype))(k)
     # the bound on the used slots, as the simulator sets it (the padded slots of pad_case skipped)
     env = make_environment(with_used(s.obstacles, used_bound_jit(s.obstacles)), s.goal_p, s.goal_quat)
-    return state, rs, env
+    return states, refs, env
 
 
 def study_shapes(cases, ts: float = 0.01, every_case: bool = False) -> dict:
@@ -229,7 +256,7 @@ def pad_case(scen, ik, shapes):
 
 
 def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict | None = None,
-                   *, sim_params=None, n_timing_calls: int = 300, shapes=None) -> dict:
+                   *, sim_params=None, timing_repeats: int = 5, shapes=None) -> dict:
     """Simulate ``ctrl_name`` on every scenario of a built case; rows and traces for the table.
 
     ``shapes``: ``(N, caps)``, this case's entry of :func:`study_shapes`; the case is simulated
@@ -277,12 +304,12 @@ def run_controller(arm, scen_payload: dict, ctrl_name: str, gain_overrides: dict
     if not controller.uses_guidance:  # the padded samples back off (invalid, never reported)
         N1 = scen_sim.reference.capacity
         res = jax.tree.map(lambda x: x[:, :N0] if x.ndim >= 2 and x.shape[1] == N1 else x, res)
-    state, rs, env = _sample_inputs(arm, scen_sim, controller, gains)
-    t_ctrl = controller_time_per_sample(controller, gains, arm, state, rs, env, n_calls=n_timing_calls)
+    states, refs, env = _timing_samples(arm, scen_sim, None if ik_arg is None else ik_sim, controller, res)
+    t_ctrl = controller_time_per_sample(controller, gains, arm, states, refs, env, repeats=timing_repeats)
     t_lme = float("nan")
     field_shift = np.full(R, np.nan)
     if controller.uses_guidance:
-        t_lme = _lme_time(scen_sim, n_timing_calls, params, gains)
+        t_lme = _lme_time(scen_sim, res, timing_repeats, params, gains)
         field_shift = _goal_field_shift(scen_sim, params, gains)[:R]
     timings = scen_payload["timings"]
     rows = []
@@ -359,18 +386,34 @@ def _field_shifts(goal_p, obstacles, fp):
     return jax.vmap(lambda g, o: goal_field_minimum(g, o, fp)[1])(goal_p, obstacles)
 
 
-def _lme_time(scen, n_calls: int, params, gains) -> float:
-    """Mean time of one local-minima-estimator update (Hessian of the total field + buffer push),
-    the update the simulation runs: its field parameters, ``lme_mu``, ``lme_max_jump`` and a buffer
-    of ``buffer_size`` virtual obstacles (``params``: the run's ``SimParams``)."""
-    from ._guidance import VirtualBuffer, estimator_update, field_params_or_default
-    from ._metrics import time_per_call
+def _lme_time(scen, res, repeats: int, params, gains) -> float:
+    """Local-minima-estimator time per sample [s]: one jitted call that runs the update the
+    simulation runs at every sample start (Hessian of the total field, estimate, buffer push;
+    :func:`~redman_jax._guidance.estimator_update` with the run's field parameters, ``lme_mu``,
+    ``lme_max_jump`` and a buffer of ``buffer_size``) along the end-effector positions a run saved
+    (as :func:`_timing_samples` picks them), the buffer carried from sample to sample, divided by
+    the samples (the least of ``repeats`` calls; ``params``: the run's ``SimParams``)."""
+    from ._guidance import VirtualBuffer, field_params_or_default
+    from ._metrics import wall_time_per_sample
 
-    s = _take(scen, 0)
+    K = scen.reference.capacity
+    i, idx = _timing_rows(res, K)
+    s = _take(scen, i)
+    xs = put(np.asarray(res.p[i])[idx])
     buf = VirtualBuffer.empty(params.buffer_size, s.goal_p.dtype)
     fp = field_params_or_default(params.field, gains)
-    x = s.reference.p[0]
-    # the module-level function itself (not a closure), so that cases sharing their shapes share
-    # its compilation (time_per_call keeps one jitted wrapper per function)
-    return time_per_call(estimator_update, x, s.goal_p, s.obstacles, buf, fp, params.lme_mu,
-                         params.lme_max_jump, n_calls=n_calls)
+    return wall_time_per_sample(_lme_scan, xs, s.goal_p, s.obstacles, buf, fp, params.lme_mu,
+                                params.lme_max_jump, n_samples=K, repeats=repeats)
+
+
+@eqx.filter_jit
+def _lme_scan(xs, goal_p, obstacles, buf, fp, mu, max_jump):
+    """The estimator's update at each of ``xs`` in turn, the buffer carried (module-level, so that
+    the cases that share their shapes share its compilation)."""
+    from ._guidance import estimator_update
+
+    def step(b, x):
+        b, x_min, valid = estimator_update(x, goal_p, obstacles, b, fp, mu, max_jump)
+        return b, (x_min, valid)
+
+    return jax.lax.scan(step, buf, xs)

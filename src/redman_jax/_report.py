@@ -503,7 +503,9 @@ def _claims_r1(d: StudyData) -> list[Claim]:
         ours = ", ".join(f"{_clabel(c)} {v * 1e3:.3g} ms" for c, v in t.items())
         why = (f"measured ordering {order}; ratios to JS: ours {_ratio_str(t, 'joint_space')}, thesis "
                f"{thesis_ratio}. " + "; ".join(f"{k}: {'yes' if ok else 'no'}" for k, ok in checks.items())
-               + ". Absolute times are JAX (jit, CPU) against MATLAB and are not comparable.")
+               + ". Ours: the control law's compute per sample, one compiled loop over a run's samples "
+               "(dispatch excluded, as IK and planning are timed); absolute times are JAX (jit, CPU) "
+               "against MATLAB and are not comparable.")
         out.append(Claim("R1.a", stmt, thesis_t, ours, verdict, why))
     # models do not differ
     stmt = f"Controller time does not differ between models (max/min over arms <= {MODEL_SPREAD})"
