@@ -4,10 +4,15 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
+# pip >= 21.3 installs an editable package from pyproject.toml alone (PEP 660): upgraded only where
+# the venv's own pip is older (Python 3.10.0 ships 21.2.3; 3.11's is new enough, no download).
+# --no-compile: Python byte-compiles the modules a process imports when it first imports them,
+# instead of pip compiling every file of jax, scipy, pandas, ... up front. Fresh venv and home, no
+# pip cache, alternating: install 33.1 / 46.5 -> 21.3 / 29.3 s, the first import 2.6 -> 5.0-5.3 s.
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test,io]'
+	$(PY) -m pip install -q 'pip>=21.3'
+	$(PY) -m pip install -q --no-compile -e '.[test,io]'
 	touch $@
 
 .PHONY: venv run test test-all bench
