@@ -8,14 +8,14 @@ For each controller: ``jit`` (batch 1) and ``jit(vmap)`` at batch 20 and 1024, w
 batch's) states one after another in one ``jit(lax.map)`` call, per state (a single call is mostly
 per-call dispatch; the loop is the control law's own sequential time, what the study reports as
 ``t_controller_per_sample``). Under JAX's default XLA flags each iteration still runs as a
-sequence of kernels; the study's workers compile the loop as one function (``XLA_FLAGS`` =
-``redman_jax._study.EMITTER_XLA_FLAGS + LOOP_XLA_FLAGS``, joined by spaces): set those for the
-study's figure. A deliberately naive layout of the acceleration OSC
+sequence of kernels; the study's workers compile the loop as one function (XLA flags
+``redman_jax._study.WORKER_XLA_FLAGS``: ``--study-flags``) for the study's figure. With ``--devices``
+each device runs the loop over its shard of the states. A deliberately naive layout of the acceleration OSC
 (separate FK passes for every Jacobian, POI Jacobians by ``jax.jacfwd``, a full SVD for sigma_min, the
 reference per-point vmap of ``_fields.obstacle_field_gradient``, ``M`` and ``c + g`` formed
 explicitly, ``J_dot q_dot`` by a jvp) is timed in the same run as "before".
 
-Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9] [--devices N]``
+Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9] [--devices N] [--study-flags]``
 (``JAX_PLATFORMS=cpu taskset -c 0,1`` for the 2-core CPU figure). ``--devices 2`` splits the CPU
 into two XLA devices and runs every batch they divide (20, 1024) as one shard per device
 (``shard_map``), as a user would spread a batch over the cores; the naive layout stays on one
@@ -103,11 +103,20 @@ def main():
     ap.add_argument("--devices", type=int, default=None,
                     help="CPU: split the host into this many XLA devices (--xla_force_host_platform_device_count) "
                          "and run every batch they divide as one shard per device")
+    ap.add_argument("--study-flags", action="store_true",
+                    help="start XLA with the study workers' flags (redman_jax._study.WORKER_XLA_FLAGS: the older "
+                         "loop emitters, every while loop compiled as one function, LLVM level 1)")
     args = ap.parse_args()
-    if args.devices is not None:
-        from _xla_start import start_with_host_devices
+    if args.devices is not None or args.study_flags:
+        from _xla_start import start_with_host_devices, start_with_xla_flags
 
-        start_with_host_devices(args.devices)
+        from redman_jax._study import WORKER_XLA_FLAGS
+
+        extra = WORKER_XLA_FLAGS if args.study_flags else ()
+        if args.devices is not None:
+            start_with_host_devices(args.devices, extra)
+        else:
+            start_with_xla_flags(extra, "--study-flags")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
@@ -122,12 +131,14 @@ def main():
         ``jax::ParallelBatchMap`` of the batched SVD kernel)."""
         return len(devices) > 1 and B % len(devices) == 0 and not naive
 
-    def batched(fn, args, B, naive):
+    def batched(fn, args, B, naive, per_shard=None):
         """``(jit(vmap(fn)), args)``; sharded, each device runs it on its own shard of ``args`` (no
-        communication; ``shard_map``'s varying-type check on, as a user would have it)."""
+        communication; ``shard_map``'s varying-type check on, as a user would have it). ``per_shard``
+        replaces ``vmap(fn)`` as what each device runs."""
+        body = jax.vmap(fn) if per_shard is None else per_shard
         if not sharded(B, naive):
-            return jax.jit(jax.vmap(fn)), args
-        f = jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec))
+            return jax.jit(body), args
+        f = jax.jit(jax.shard_map(body, mesh=mesh, in_specs=spec, out_specs=spec))
         return f, jax.device_put(args, NamedSharding(mesh, spec))
     rng = np.random.default_rng(0)
     arm = rj.thesis_arm(args.dof)
@@ -183,8 +194,14 @@ def main():
                 # time per sample, without the per-call dispatch (the study's t_controller_per_sample)
                 allz = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(qs) if ctrl is not None else jnp.zeros((bmax, 0))
                 allz = jnp.zeros((bmax, 0)) if not jax.tree.leaves(allz) else allz
-                fl = jax.jit(lambda g, q, qd, z, ref, call=call: jax.lax.map(lambda a: call(g, *a), (q, qd, z, ref)))
-                lus, lus_min, ltc = timed(fl, gains, qs, qds, allz, refs, batch=bmax)
+                if sharded(bmax, ctrl is None):  # each device runs the loop over its shard of the states
+                    fl, la = batched(None, (qs, qds, allz, refs), bmax, False,
+                                     per_shard=lambda q, qd, z, ref, call=call, gains=gains: jax.lax.map(
+                                         lambda a: call(gains, *a), (q, qd, z, ref)))
+                    lus, lus_min, ltc = timed(fl, *la, batch=bmax)
+                else:
+                    fl = jax.jit(lambda g, q, qd, z, ref, call=call: jax.lax.map(lambda a: call(g, *a), (q, qd, z, ref)))
+                    lus, lus_min, ltc = timed(fl, gains, qs, qds, allz, refs, batch=bmax)
                 base = THESIS_MS.get(name.replace("_naive", ""))
                 ratio = f"{base * 1e3 / lus:8.0f}x" if base else "       -"
                 rows.append((name, -bmax, lus, lus_min, ltc))

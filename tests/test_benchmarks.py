@@ -27,7 +27,8 @@ PY = str(VENV_PY) if VENV_PY.exists() else sys.executable
 # script: (its smallest run, a line its output ends with)
 SMALL_RUNS = {
     "bench_cases.py": (["--dof", "7", "--seeds", "1"], "all five"),
-    "bench_controllers.py": (["--dof", "7", "--batches", "1", "--controllers", "joint_space", "--calls", "1"],
+    "bench_controllers.py": (["--dof", "7", "--batches", "1", "--controllers", "joint_space", "--calls", "1",
+                              "--devices", "2", "--study-flags"],
                              "acceleration_naive   batch     1:"),
     "bench_dynamics.py": (["--quick"], "paired rounds at batch 1024"),
     "bench_guided.py": (["--dof", "7", "--seeds", "1", "--reps", "2"], "simple: stepper / per-sample, warm speed-up"),
