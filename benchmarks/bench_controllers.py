@@ -131,11 +131,9 @@ def main():
         ``jax::ParallelBatchMap`` of the batched SVD kernel)."""
         return len(devices) > 1 and B % len(devices) == 0 and not naive
 
-    def batched(fn, args, B, naive, per_shard=None):
-        """``(jit(vmap(fn)), args)``; sharded, each device runs it on its own shard of ``args`` (no
-        communication; ``shard_map``'s varying-type check on, as a user would have it). ``per_shard``
-        replaces ``vmap(fn)`` as what each device runs."""
-        body = jax.vmap(fn) if per_shard is None else per_shard
+    def batched(body, args, B, naive):
+        """``(jit(body), args)``; sharded, each device runs ``body`` on its own shard of ``args`` (no
+        communication; ``shard_map``'s varying-type check on, as a user would have it)."""
         if not sharded(B, naive):
             return jax.jit(body), args
         f = jax.jit(jax.shard_map(body, mesh=mesh, in_specs=spec, out_specs=spec))
@@ -169,53 +167,46 @@ def main():
         return float(np.median(ts)) / batch * 1e6, float(np.min(ts)) / batch * 1e6, tc
 
     rows = []
+
+    def report(name, label, count, us, us_min, tc):
+        base = THESIS_MS.get(name.replace("_naive", ""))
+        ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
+        rows.append((name, count if label == "batch" else -count, us, us_min, tc))
+        print(f"{name:20s} {label:5s} {count:5d}: {us:9.2f} us/state median, {us_min:7.2f} min  (thesis/this {ratio})"
+              f"  compile {tc:5.1f} s", flush=True)
+
     names = args.controllers.split(",")
     entries = [(nm, CONTROLLERS[nm]()) for nm in names] + [("acceleration_naive", None)]
     for name, ctrl in entries:
+        if ctrl is None:
+            fn = naive_acceleration(arm, obs)
+            gains = None
+            zs = jnp.zeros((bmax, 0))
+            call = lambda g, q, qd, z, ref: fn(g, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=()), ref)
+        else:
+            gains = ctrl.default_gains()
+            zs = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(qs)
+            zs = jnp.zeros((bmax, 0)) if not jax.tree.leaves(zs) else zs
+            call = (lambda ctrl: lambda g, q, qd, z, ref: ctrl(
+                g, arm, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=() if z.shape == (0,) else z),
+                ref, env).tau)(ctrl)
         for B in (int(b) for b in args.batches.split(",")):
-            sl = jax.tree.map(lambda x: x[:B], (qs, qds, refs))
-            if ctrl is None:
-                fn = naive_acceleration(arm, obs)
-                gains = None
-                z = jnp.zeros((B, 0))
-                call = lambda g, q, qd, z, ref: fn(g, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=()), ref)
-            else:
-                gains = ctrl.default_gains()
-                z = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(sl[0])
-                z = jnp.zeros((B, 0)) if not jax.tree.leaves(z) else z
-                call = (lambda ctrl: lambda g, q, qd, z, ref: ctrl(
-                    g, arm, ControlState(t=jnp.zeros(()), q=q, qd=qd, z=() if z.shape == (0,) else z),
-                    ref, env).tau)(ctrl)
+            sl = jax.tree.map(lambda x: x[:B], (qs, qds, zs, refs))
             if B == 1:
-                one = jax.tree.map(lambda x: x[0], (sl[0], sl[1], z, sl[2]))
+                one = jax.tree.map(lambda x: x[0], sl)
                 f = jax.jit(lambda g, q, qd, z, ref, call=call: call(g, q, qd, z, ref))
                 us, us_min, tc = timed(f, gains, *one, batch=1)
-                # the same states one after another in one call (lax.map): the control law's own
-                # time per sample, without the per-call dispatch (the study's t_controller_per_sample)
-                allz = jax.vmap(lambda q: ctrl.init_state(arm, q, q))(qs) if ctrl is not None else jnp.zeros((bmax, 0))
-                allz = jnp.zeros((bmax, 0)) if not jax.tree.leaves(allz) else allz
-                if sharded(bmax, ctrl is None):  # each device runs the loop over its shard of the states
-                    fl, la = batched(None, (qs, qds, allz, refs), bmax, False,
-                                     per_shard=lambda q, qd, z, ref, call=call, gains=gains: jax.lax.map(
-                                         lambda a: call(gains, *a), (q, qd, z, ref)))
-                    lus, lus_min, ltc = timed(fl, *la, batch=bmax)
-                else:
-                    fl = jax.jit(lambda g, q, qd, z, ref, call=call: jax.lax.map(lambda a: call(g, *a), (q, qd, z, ref)))
-                    lus, lus_min, ltc = timed(fl, gains, qs, qds, allz, refs, batch=bmax)
-                base = THESIS_MS.get(name.replace("_naive", ""))
-                ratio = f"{base * 1e3 / lus:8.0f}x" if base else "       -"
-                rows.append((name, -bmax, lus, lus_min, ltc))
-                print(f"{name:20s} loop  {bmax:5d}: {lus:9.2f} us/state median, {lus_min:7.2f} min  (thesis/this "
-                      f"{ratio})  compile {ltc:5.1f} s", flush=True)
+                # all the states one after another in one call (lax.map; sharded: each device over
+                # its own): the control law's own time per sample, without the per-call dispatch
+                # (the study's t_controller_per_sample)
+                fl, la = batched(lambda q, qd, z, ref, call=call, gains=gains: jax.lax.map(
+                    lambda a: call(gains, *a), (q, qd, z, ref)), (qs, qds, zs, refs), bmax, naive=ctrl is None)
+                report(name, "loop", bmax, *timed(fl, *la, batch=bmax))
             else:
-                f, a = batched(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref),
-                               (sl[0], sl[1], z, sl[2]), B, naive=ctrl is None)
+                f, a = batched(jax.vmap(lambda q, qd, z, ref, call=call, gains=gains: call(gains, q, qd, z, ref)),
+                               sl, B, naive=ctrl is None)
                 us, us_min, tc = timed(f, *a, batch=B)
-            base = THESIS_MS.get(name.replace("_naive", ""))
-            ratio = f"{base * 1e3 / us:8.0f}x" if base else "       -"
-            rows.append((name, B, us, us_min, tc))
-            print(f"{name:20s} batch {B:5d}: {us:9.2f} us/state median, {us_min:7.2f} min  (thesis/this {ratio})"
-                  f"  compile {tc:5.1f} s", flush=True)
+            report(name, "batch", B, us, us_min, tc)
     return rows
 
 

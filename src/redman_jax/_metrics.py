@@ -279,7 +279,7 @@ def _control_torque(controller, g, a, s, r, e):
 def control_torques(controller, gains, arm, states, refs, env):
     """The control law at ``K`` samples one after another (``lax.map``, as a sample loop runs it):
     ``states`` and ``refs`` carry a leading sample axis; returns the ``(K, n)`` torques."""
-    return jax.lax.map(lambda sr: controller(gains, arm, sr[0], sr[1], env).tau, (states, refs))
+    return jax.lax.map(lambda sr: _control_torque(controller, gains, arm, sr[0], sr[1], env), (states, refs))
 
 
 def _leading(tree) -> set:

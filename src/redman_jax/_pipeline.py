@@ -171,10 +171,10 @@ def _timing_samples(arm, scen, jref, controller, res):
     from ._obstacles import used_bound_jit, with_used
     from ._sim import _goal_sample, _ref_sample, joint_reference
 
-    i, idx = _timing_rows(res, scen.reference.capacity)
+    K = scen.reference.capacity
+    i, idx = _timing_rows(res, K)
     s = _take(scen, i)
     ref = s.reference
-    K = ref.capacity
     dtype = np.asarray(res.q).dtype
     q = put(np.asarray(res.q[i])[idx])
     qd = put(np.asarray(res.qd[i])[idx])
