@@ -203,6 +203,37 @@ def test_vmap_over_seeds_equals_single_runs(free_run, sphere_runs):
     np.testing.assert_array_equal(np.asarray(validate_ik(ARM, scen, batch)), np.asarray(batch.valid))
 
 
+def test_stop_on_invalid_stops_a_colliding_run_and_changes_nothing_else(free_run, sphere_runs):
+    """Screening (the retry rounds of validated_scenarios): in a batch of the free circle and the
+    circle through the sphere with the obstacle handling off (a collision), the colliding run takes
+    no QP iteration after its first collision and holds its configuration; the free run and every
+    flag are the same to the bit, and both settings run one compiled program."""
+    from conftest import backend_compiles
+
+    ref, _ = free_run
+    _, obs, _, _, _ = sphere_runs
+    params = with_gamma(0.0, activation=-1.0)
+    refs = jax.tree.map(lambda *x: jnp.stack(x), ref, ref)
+    obss = jax.tree.map(lambda *x: jnp.stack(x), free_obstacles(), obs)
+    full = jax.tree.map(np.asarray, ik_reference(ARM, refs, obss, params))
+    with backend_compiles() as seen:
+        screened = jax.tree.map(np.asarray, ik_reference(ARM, refs, obss, params, stop_on_invalid=True))
+    assert seen == []
+    assert full.valid.tolist() == [True, False] and not full.collision_free[1]
+    for name in ("valid", "collision_free", "within_limits", "finite"):
+        np.testing.assert_array_equal(getattr(screened, name), getattr(full, name), err_msg=name)
+    for name in ("q", "qd", "qdd", "qp_iterations", "clearance"):
+        np.testing.assert_array_equal(getattr(screened, name)[0], getattr(full, name)[0], err_msg=name)
+    k = int(np.argmax(full.clearance[1] < 0))  # the first collision
+    assert 0 < k < N_MOVE - 2
+    for name in ("q", "qd", "qp_iterations", "clearance"):  # the same up to it
+        np.testing.assert_array_equal(getattr(screened, name)[1, :k + 1], getattr(full, name)[1, :k + 1],
+                                      err_msg=name)
+    assert np.all(screened.qp_iterations[1, k + 1:] == 0) and np.all(full.qp_iterations[1, k + 1:N_MOVE - 1] > 0)
+    assert np.all(screened.qd[1, k + 1:] == 0)
+    np.testing.assert_array_equal(screened.q[1, k + 2:], np.broadcast_to(screened.q[1, k + 1], screened.q[1, k + 2:].shape))
+
+
 def test_policy_from_shared_distances_matches_nullspace_module():
     """The IK evaluates 3.34 from its one distance pass; it must equal _nullspace.obstacle_policy."""
     from redman_jax._ik import _geometry, _policy
@@ -326,6 +357,30 @@ def test_validated_scenarios_reseeds(monkeypatch):
     np.testing.assert_array_equal(np.asarray(scen.seed_used), [1001, 2])
     np.testing.assert_array_equal(np.asarray(scen.seed), [1, 2])
     assert np.all(np.asarray(res.valid)) and res.q.shape == (2, CAP, ARM.n_dof)
+
+
+def test_a_seed_without_a_valid_candidate_gets_its_last_candidates_full_ik(monkeypatch, sphere_runs):
+    """The retry rounds screen (``stop_on_invalid``), but what comes back for a seed that found no
+    valid candidate is its last candidate's whole IK, as without screening."""
+    import redman_jax._cases as cases
+
+    ref, obs, _, _, _ = sphere_runs
+    params = with_gamma(0.0, activation=-1.0)  # the circle through the sphere collides
+
+    def always_colliding(case, seeds, arm, params=None, validate=None, max_retries=20, stats=None):
+        s = scenario(ref, obs)
+        for attempt in range(max_retries + 1):
+            s = eqx.tree_at(lambda s: s.seed_used, s, jnp.asarray(seeds[0] + 1000 * attempt))
+            assert not validate(jax.tree.map(lambda x: x[None], s))[0]
+        return jax.tree.map(lambda x: x[None], eqx.tree_at(lambda s: s.valid, s, jnp.asarray(False)))
+
+    monkeypatch.setattr(cases, "make_scenarios", always_colliding)
+    scen, res = validated_scenarios("custom", [3], ARM, max_retries=1, params=params)
+    full = ik_reference(ARM, ref, obs, params)
+    assert int(scen.seed_used[0]) == 1003 and not bool(res.valid[0])
+    k = int(np.argmax(np.asarray(full.clearance) < 0))
+    assert 0 < k and int(np.asarray(res.qp_iterations[0, k + 1:]).sum()) > 0  # not stopped
+    np.testing.assert_allclose(np.asarray(res.q[0]), np.asarray(full.q), rtol=0, atol=1e-12)
 
 
 def test_importing_redman_jax_starts_no_jax_backend():

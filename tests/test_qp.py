@@ -279,3 +279,17 @@ def test_returned_duals_satisfy_the_reported_dual_residual():
         s = solve_qp(P, c, A, l, h, lb, ub, settings=QPSettings(max_iter=int(rng.integers(4, 12))))
         x, y, yb = (np.asarray(v) for v in (s.x, s.y, s.y_box))
         assert np.abs(P @ x + c + A.T @ y + yb).max() <= 10 * float(s.dual_residual) + 1e-9
+
+
+def test_stopping_the_interior_point_loop_of_one_batch_member():
+    """``solve_qp(active=False)`` takes no iteration; ``active=True`` is the plain solve, and under
+    ``vmap`` the members are independent (the IK's screening relies on both)."""
+    P, c = jnp.diag(jnp.array([2.0, 1.0, 3.0])), jnp.array([1.0, -2.0, 0.5])
+    A, lo = jnp.array([[1.0, 1.0, 0.0]]), jnp.array([1.5])
+    lb, ub = -jnp.ones(3), jnp.ones(3)
+    plain = solve_qp(P, c, A, lo, None, lb, ub)
+    assert int(plain.iterations) > 0 and bool(plain.converged)
+    both = jax.vmap(lambda act: solve_qp(P, c, A, lo, None, lb, ub, active=act))(jnp.array([True, False]))
+    np.testing.assert_array_equal(np.asarray(both.x[0]), np.asarray(plain.x))
+    assert int(both.iterations[0]) == int(plain.iterations) and int(both.iterations[1]) == 0
+    assert not bool(both.converged[1])

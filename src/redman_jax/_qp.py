@@ -187,8 +187,9 @@ def _criteria(P, c, rows: _Rows, x, s, z, eps_abs, eps_rel):
     return r_p, r_d, mu, ok_p & ok_d & ok_g
 
 
-def _ipm(P, c, rows: _Rows, settings: QPSettings):
-    """Mehrotra predictor-corrector; returns the final ``(x, s, z, iterations, converged)``."""
+def _ipm(P, c, rows: _Rows, settings: QPSettings, active=None):
+    """Mehrotra predictor-corrector; returns the final ``(x, s, z, iterations, converged)``.
+    ``active`` False: no iteration (the initial point)."""
     n = P.shape[0]
     dtype = P.dtype
     mask = rows.mask
@@ -252,7 +253,8 @@ def _ipm(P, c, rows: _Rows, settings: QPSettings):
         return (~st.done) & (st.it < settings.max_iter)
 
     _, _, _, ok0 = _criteria(P, c, rows, x0, s0, z0, eps_abs, eps_rel)
-    st = _State(x=x0, s=s0, z=z0, it=jnp.asarray(0, jnp.int32), done=ok0)
+    done0 = ok0 if active is None else ok0 | ~jnp.asarray(active, bool)
+    st = _State(x=x0, s=s0, z=z0, it=jnp.asarray(0, jnp.int32), done=done0)
     st = jax.lax.while_loop(cond, body, st)
     _, _, _, ok = _criteria(P, c, rows, st.x, st.s, st.z, eps_abs, eps_rel)
     return st.x, st.s, st.z, st.it, ok
@@ -382,12 +384,16 @@ def _check_values(P, c, A, l, h, lb, ub):
 
 
 def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
-             settings: QPSettings = QPSettings()) -> QPSolution:
+             settings: QPSettings = QPSettings(), *, active=None) -> QPSolution:
     """Solve ``min 1/2 x'Px + c'x  s.t.  l <= A x <= h,  lb <= x <= ub`` (see the module docstring).
 
     **Arguments:** ``P`` ``(n, n)`` symmetric positive definite; ``c`` ``(n,)``; ``A`` ``(m, n)``
     (``None``: no general rows); ``l``, ``h`` ``(m,)`` and ``lb``, ``ub`` ``(n,)``, infinite entries
-    allowed (``None``: unbounded). ``settings``: :class:`QPSettings`.
+    allowed (``None``: unbounded). ``settings``: :class:`QPSettings`. ``active`` (a boolean array,
+    ``None``: true): where false the interior-point loop takes no iteration and the solution is
+    its initial point (``converged`` false unless that is optimal). Under ``vmap`` the loop runs
+    until its last member stops, so a caller that no longer needs a member's solution (the IK of
+    a candidate already known invalid) takes it out of the count.
 
     **Returns:** a :class:`QPSolution`. Differentiable in every array argument (implicit
     differentiation at the solution; see the module docstring), jit- and vmap-able.
@@ -402,11 +408,11 @@ def solve_qp(P, c, A=None, l=None, h=None, lb=None, ub=None,
     compiled anew on every call and exhausted LLVM's memory after some hundred calls).
     """
     _check_values(P, c, A, l, h, lb, ub)
-    return _solve_qp(P, c, A, l, h, lb, ub, settings)
+    return _solve_qp(P, c, A, l, h, lb, ub, settings, active)
 
 
 @eqx.filter_jit
-def _solve_qp(P, c, A, l, h, lb, ub, settings: QPSettings) -> QPSolution:
+def _solve_qp(P, c, A, l, h, lb, ub, settings: QPSettings, active=None) -> QPSolution:
     P = jnp.asarray(P)
     c = jnp.asarray(c)
     dtype = jnp.result_type(P.dtype, c.dtype, jnp.float32)
@@ -428,7 +434,7 @@ def _solve_qp(P, c, A, l, h, lb, ub, settings: QPSettings) -> QPSolution:
     rows = _make_rows(A, l, h, lb, ub)
     sg = jax.lax.stop_gradient
     Ps, cs, As, ls, hs, lbs, ubs = (sg(v) for v in (P, c, A, l, h, lb, ub))
-    x_ip, s, z, it, ok_ip = _ipm(Ps, cs, _Rows(A=As, g=sg(rows.g), mask=rows.mask), settings)
+    x_ip, s, z, it, ok_ip = _ipm(Ps, cs, _Rows(A=As, g=sg(rows.g), mask=rows.mask), settings, active)
     act_u, act_l, fix_u, fix_l = _active_set(rows, s, z)
     zm = z * rows.mask
     y_ip = zm[:m] - zm[m:2 * m]
