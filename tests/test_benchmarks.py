@@ -48,6 +48,11 @@ SMALL_RUNS = {
     "bench_vector_field.py": (["--batches", "1", "--controllers", "joint_space"],
                               "closed-loop vector field joint_space"),
 }
+# the other modes of a script: "script --mode" -> (its smallest run, a line its output ends with)
+MODE_RUNS = {
+    "bench_ik.py --rounds": (["--dof", "7", "--seeds", "2", "--cases", "welding", "--rounds"],
+                             "all cases, the lesser of each"),
+}
 
 
 def test_every_benchmark_has_a_small_run():
@@ -56,9 +61,10 @@ def test_every_benchmark_has_a_small_run():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("script", sorted(SMALL_RUNS))
-def test_benchmark_runs_small(script):
-    args, last = SMALL_RUNS[script]
+@pytest.mark.parametrize("run", sorted(SMALL_RUNS) + sorted(MODE_RUNS))
+def test_benchmark_runs_small(run):
+    args, last = SMALL_RUNS[run] if run in SMALL_RUNS else MODE_RUNS[run]
+    script = run.split()[0]
     env = dict(os.environ, JAX_PLATFORMS="cpu", MPLBACKEND="Agg", REDMAN_JAX_X64="1")
     proc = subprocess.run([PY, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
                           env=env, timeout=900, cwd=str(ROOT))

@@ -354,6 +354,7 @@ def test_validated_scenarios_reseeds(monkeypatch):
     stats = collections.Counter()
     scen, res = validated_scenarios("custom", [1, 2], arm, max_retries=2, stats=stats)
     assert calls == [2, 1]
+    assert stats["ik_rounds"] == 2 and stats["ik_batch_qp_iterations"] > 0
     np.testing.assert_array_equal(np.asarray(scen.seed_used), [1001, 2])
     np.testing.assert_array_equal(np.asarray(scen.seed), [1, 2])
     assert np.all(np.asarray(res.valid)) and res.q.shape == (2, CAP, ARM.n_dof)
@@ -361,7 +362,8 @@ def test_validated_scenarios_reseeds(monkeypatch):
 
 def test_a_seed_without_a_valid_candidate_gets_its_last_candidates_full_ik(monkeypatch, sphere_runs):
     """The retry rounds screen (``stop_on_invalid``), but what comes back for a seed that found no
-    valid candidate is its last candidate's whole IK, as without screening."""
+    valid candidate is its last candidate's whole IK, as without screening (``screen=False``),
+    which iterates the rounds' QPs more."""
     import redman_jax._cases as cases
 
     ref, obs, _, _, _ = sphere_runs
@@ -375,12 +377,19 @@ def test_a_seed_without_a_valid_candidate_gets_its_last_candidates_full_ik(monke
         return jax.tree.map(lambda x: x[None], eqx.tree_at(lambda s: s.valid, s, jnp.asarray(False)))
 
     monkeypatch.setattr(cases, "make_scenarios", always_colliding)
-    scen, res = validated_scenarios("custom", [3], ARM, max_retries=1, params=params)
     full = ik_reference(ARM, ref, obs, params)
-    assert int(scen.seed_used[0]) == 1003 and not bool(res.valid[0])
     k = int(np.argmax(np.asarray(full.clearance) < 0))
-    assert 0 < k and int(np.asarray(res.qp_iterations[0, k + 1:]).sum()) > 0  # not stopped
-    np.testing.assert_allclose(np.asarray(res.q[0]), np.asarray(full.q), rtol=0, atol=1e-12)
+    assert k > 0
+    stats = {}
+    for screen in (True, False):
+        stats[screen] = {}
+        scen, res = validated_scenarios("custom", [3], ARM, max_retries=3, params=params, screen=screen,
+                                        stats=stats[screen])
+        assert int(scen.seed_used[0]) == 3003 and not bool(res.valid[0])
+        assert int(np.asarray(res.qp_iterations[0, k + 1:]).sum()) > 0  # not stopped
+        np.testing.assert_allclose(np.asarray(res.q[0]), np.asarray(full.q), rtol=0, atol=1e-12)
+    assert stats[True]["ik_rounds"] == 5 and stats[False]["ik_rounds"] == 4  # + the full IK
+    assert stats[True]["ik_batch_qp_iterations"] < stats[False]["ik_batch_qp_iterations"]
 
 
 def test_importing_redman_jax_starts_no_jax_backend():

@@ -599,7 +599,7 @@ def _pad_batch(tree, size: int):
 
 
 def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, params: IKParams | None = None,
-                        case_params=None, stats: dict | None = None):
+                        case_params=None, stats: dict | None = None, screen: bool = True):
     """For each requested seed, the first valid scenario among ``seed, seed + 1000, ...`` (thesis 3.4).
 
     A candidate is accepted when its generation (and, for the RRT cases, planning) succeeded and its
@@ -608,14 +608,17 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     failure and calls back here with every retry round's candidates stacked (the next attempt of
     every pending seed, the room left filled with their later attempts): the IK of a round runs as
     one batch, padded to ``len(seeds)`` so that all rounds share one compilation. The outcome is the
-    one of trying each seed's attempts in order. The rounds screen with ``stop_on_invalid``
-    (:func:`ik_reference`): a candidate stops iterating at its first collision or limit violation;
-    a seed left without a valid candidate gets its last candidate's full IK (the same program).
+    one of trying each seed's attempts in order. With ``screen`` (default) the rounds run with
+    ``stop_on_invalid`` (:func:`ik_reference`): a candidate stops iterating at its first collision
+    or limit violation, and a seed left without a valid candidate gets its last candidate's full IK
+    (the same program). The results are the same either way (``benchmarks/bench_ik.py --rounds``).
 
     **Returns:** ``(scenarios, ik_results)`` stacked in the order of ``seeds``; ``scenario.seed`` is
     the requested seed, ``seed_used`` the seed that produced it, ``valid`` whether one was found
     within ``max_retries`` moves (if not, the last candidate comes back with ``valid = False``).
-    ``stats`` (a dict), if given, receives the generator's rejection counts.
+    ``stats`` (a dict), if given, receives the generator's rejection counts, ``ik_rounds`` (the
+    IK batches run) and ``ik_batch_qp_iterations`` (over those batches and their samples, the
+    largest QP iteration count in the batch: what a ``vmap`` of the IK steps through).
     """
     from ._cases import _check_seed, _stack, make_scenarios
 
@@ -628,27 +631,29 @@ def validated_scenarios(case: str, seeds, arm: Arm, max_retries: int = 20, param
     B = len(seeds)
     cache: dict = {}
 
-    def run(batch: Scenario, screen: bool):
+    def run(batch: Scenario, screened: bool):
         b = int(batch.seed.shape[0])
-        res = jax.tree.map(np.asarray, ik_trajectory(arm, _pad_batch(batch, B), params, stop_on_invalid=screen))
+        res = jax.tree.map(np.asarray, ik_trajectory(arm, _pad_batch(batch, B), params, stop_on_invalid=screened))
+        counts["ik_rounds"] += 1
+        counts["ik_batch_qp_iterations"] += int(res.qp_iterations.max(axis=0).sum())
         seed, used = np.asarray(batch.seed), np.asarray(batch.seed_used)
         for j in range(b):
-            if not screen or res.valid[j]:  # a screened invalid run stopped early: not its IK
+            if not screened or res.valid[j]:  # a screened invalid run stopped early: not its IK
                 cache[(int(seed[j]), int(used[j]))] = jax.tree.map(lambda x, j=j: x[j], res)
         return res, b
 
     def validate(batch: Scenario):
-        res, b = run(batch, True)
+        res, b = run(batch, screen)
         return np.asarray(res.valid)[:b]
 
     counts = collections.Counter()
     scen = make_scenarios(case, seeds, arm, params=case_params, validate=validate, max_retries=max_retries,
                           stats=counts)
-    if stats is not None:
-        stats.update(counts)
     keys = list(zip(np.asarray(scen.seed).tolist(), np.asarray(scen.seed_used).tolist()))
     missing = [j for j, k in enumerate(keys) if k not in cache]
     if missing:  # no valid candidate, or generation never succeeded: the full IK for the record
         run(jax.tree.map(lambda x: x[np.asarray(missing)], scen), False)
+    if stats is not None:
+        stats.update(counts)
     results = [cache[k] for k in keys]
     return scen, _stack(results)
