@@ -437,6 +437,11 @@ def _check_reference(arm: Arm, ref: Reference, q0):
     check_initial_state("q0", q0, arm.n_dof)
 
 
+def _in_limits(arm: Arm, q, tol):
+    """Per joint (``q``: ``(n,)`` or ``(N, n)``): within its limits up to ``tol``, or unlimited."""
+    return ((q >= arm.q_min - tol) & (q <= arm.q_max + tol)) | ~arm.limited
+
+
 def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams, stop=False) -> IKResult:
     dtype = jnp.result_type(ref.p.dtype, arm.q0.dtype)
     params = cast_floating(params, dtype)  # float64 defaults would promote a float32 scan's carry
@@ -463,7 +468,7 @@ def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams,
         q_next = q + s.ts * qd
         # the validity criteria at this sample (as below): a run that breaks one cannot be valid
         ok = (jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)) & (diag["clearance"] >= 0.0)
-              & jnp.all(((q >= arm.q_min - tol) & (q <= arm.q_max + tol)) | ~arm.limited))
+              & jnp.all(_in_limits(arm, q, tol)))
         alive = alive & (ok | ~s.valid | ~stop)
         return (q_next, qd, alive), (q, qd, qdd, diag)
 
@@ -488,9 +493,7 @@ def _ik_single(arm: Arm, obs: ObstacleSet, ref: Reference, q0, params: IKParams,
     # validity from the step's own distances at every q_k (validate_ik recomputes independently)
     finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)) & jnp.all(jnp.isfinite(qdd))
     clear = jnp.all(jnp.where(valid_s, diag["clearance"] >= 0.0, True)) & finite
-    tol = params.limit_tolerance
-    inside = (q >= arm.q_min - tol) & (q <= arm.q_max + tol)
-    within = jnp.all(inside | ~arm.limited[None, :] | ~valid_s[:, None]) & finite
+    within = jnp.all(_in_limits(arm, q, tol) | ~valid_s[:, None]) & finite
     reached = (final_error < params.goal_tolerance) & finite
     return eqx.tree_at(lambda r: (r.collision_free, r.within_limits, r.reached, r.finite, r.valid), res,
                        (clear, within, reached, finite, clear & within & reached))
@@ -509,9 +512,7 @@ def _validate_one(arm: Arm, obs: ObstacleSet, ref: Reference, res: IKResult, par
     D = jax.vmap(lambda P: _pair_distances(obs, P))(pois)  # (N, m, K)
     width = arm.widths[jnp.asarray(poi_link_index(arm))]  # (m,)
     clear = jnp.all((D >= width[None, :, None]) | ~mask[:, None, None])
-    tol = params.limit_tolerance
-    inside = (q >= arm.q_min - tol) & (q <= arm.q_max + tol)
-    within = jnp.all(inside | ~arm.limited[None, :] | ~mask[:, None])
+    within = jnp.all(_in_limits(arm, q, params.limit_tolerance) | ~mask[:, None])
     last = res.n_samples - 1
     err = jnp.linalg.norm(ref.p[last] - _ee(arm, q[last]))
     reached = err < params.goal_tolerance
