@@ -33,6 +33,7 @@ SMALL_RUNS = {
     "bench_dynamics.py": (["--quick"], "paired rounds at batch 1024"),
     "bench_guided.py": (["--dof", "7", "--seeds", "1", "--reps", "2"], "simple: stepper / per-sample, warm speed-up"),
     "bench_ik.py": (["--dof", "7", "--seeds", "1", "--cases", "welding"], "all cases, batched, warm"),
+    "bench_lapack_pool.py": (["--batches", "20", "--gfm-batches", "20", "--reps", "2"], "rows that hung: 0 of 5"),
     "bench_planning.py": (["--seeds", "1", "--repeat", "1"], "batch vmap"),
     "bench_sim.py": (["--dof", "7", "--seeds", "2", "--cases", "welding", "--controllers", "joint_space",
                       "--scipy-samples", "2"], "target >= 100x met in"),

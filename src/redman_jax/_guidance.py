@@ -109,6 +109,40 @@ def estimator_update(x, goal_p, obs, buf: VirtualBuffer, params: FieldParams, mu
     return buf.push(x_min, valid), x_min, valid
 
 
+def _newton_step_3(H, g):
+    """``(H_s^-1 g, H_s positive definite)`` for a 3x3 ``H`` (``H_s = (H + H^T) / 2``), by an
+    unrolled ``L D L^T`` factorisation: ``H_s`` is positive definite exactly when the three pivots
+    are positive (Sylvester), so one factorisation gives both. The step is finite where that holds
+    (pivots of the untaken branch are replaced by 1, so neither value nor gradient sees a 0 / 0).
+
+    In place of ``jnp.linalg.solve`` and ``jnp.linalg.eigvalsh``: two independent LAPACK calls per
+    step, which under a large ``vmap`` (20,000 goals) hung the process in jaxlib 0.10's CPU kernels
+    (each batched call splits its batch over XLA's thread pool and blocks a pool thread waiting
+    for the parts; two at once on a two-thread pool wait for each other; README, "Known issues")."""
+    Hs = 0.5 * (H + H.T)
+    one = jnp.ones((), Hs.dtype)
+    d1 = Hs[0, 0]
+    ok1 = d1 > 0
+    d1s = jnp.where(ok1, d1, one)
+    l21, l31 = Hs[1, 0] / d1s, Hs[2, 0] / d1s
+    d2 = Hs[1, 1] - l21 * l21 * d1s
+    ok2 = ok1 & (d2 > 0)
+    d2s = jnp.where(ok2, d2, one)
+    l32 = (Hs[2, 1] - l31 * l21 * d1s) / d2s
+    d3 = Hs[2, 2] - l31 * l31 * d1s - l32 * l32 * d2s
+    ok3 = ok2 & (d3 > 0)
+    d3s = jnp.where(ok3, d3, one)
+    # L y = g, D z = y, L^T x = z
+    y1 = g[0]
+    y2 = g[1] - l21 * y1
+    y3 = g[2] - l31 * y1 - l32 * y2
+    x3 = y3 / d3s
+    x2 = y2 / d2s - l32 * x3
+    x1 = y1 / d1s - l21 * x2 - l31 * x3
+    dx = jnp.stack([x1, x2, x3])
+    return dx, ok3 & jnp.all(jnp.isfinite(dx))
+
+
 def goal_field_minimum(goal_p: Float[Array, "3"], obs: ObstacleSet, params: FieldParams | None = None,
                        *, n_iter: int = 400, max_step=0.02):
     """The minimum of the guidance field (goal + obstacles, no virtual obstacles) that the goal
@@ -141,9 +175,8 @@ def goal_field_minimum(goal_p: Float[Array, "3"], obs: ObstacleSet, params: Fiel
     def step(x, _):
         g = total_gradient(x, goal_p, obs, vp, vm, params)
         H = total_hessian(x, goal_p, obs, vp, vm, params)
-        dx = jnp.linalg.solve(H, g)
         # Newton where the field is convex, the (scaled) gradient otherwise
-        convex = jnp.all(jnp.linalg.eigvalsh(0.5 * (H + H.T)) > 0) & jnp.all(jnp.isfinite(dx))
+        dx, convex = _newton_step_3(H, g)
         dx = jnp.where(convex, dx, g / 2.0)
         n = safe_norm(dx)
         return x - dx * jnp.minimum(1.0, max_step / jnp.maximum(n, 1e-12)), None
