@@ -1869,13 +1869,35 @@ def _with_data(make, future, d, path):
     return make(d, path, future.result())  # the background computation's error, if any, raises here
 
 
-def make_report(out_dir, *, figures: bool = True, hooks: bool = True) -> Path:
+def draw_figures(out_dir, *, only=None, exclude=()) -> dict:
+    """Draw the figures of :data:`FIGURES` and :data:`HOOKS` named in ``only`` (default: all) but
+    not in ``exclude`` into ``DIR/figures``, one after the other (a ``prefetch`` computes inline);
+    returns ``{file: (status, reason, hook result)}``, what :func:`make_report` takes as ``drawn``.
+    :func:`redman_jax._study.render_report` draws the figures in two processes this way."""
+    out = Path(out_dir)
+    d = load_study(out)
+    if not d.rows:
+        raise ValueError(f"out_dir: runs.csv in {str(out)!r} has no runs")
+    drawn = {}
+    for spec in FIGURES + HOOKS:
+        if (only is not None and spec.file not in only) or spec.file in exclude:
+            continue
+        if spec.prefetch is not None:
+            make, prefetch = spec.make, spec.prefetch
+            spec = dataclasses.replace(spec, make=lambda d, path, make=make, prefetch=prefetch:
+                                       make(d, path, prefetch(d)))
+        drawn[spec.file] = _render(spec, d, out / "figures")
+    return drawn
+
+
+def make_report(out_dir, *, figures: bool = True, hooks: bool = True, drawn: dict | None = None) -> Path:
     """Write ``DIR/figures/*.png`` and ``DIR/report.md`` for a results folder; returns the report path.
 
     **Arguments:** ``out_dir``: a folder holding ``runs.csv`` (and, optionally, ``traces/*.npz`` and
     ``config.json``) as written by :func:`redman_jax._study.run_sweep`; ``figures=False`` writes only
     the report (its figure list then says "not generated (figures disabled)"); ``hooks=False`` skips
-    the figures that rebuild scenes or re-simulate (:data:`HOOKS`; they compile JAX code). A figure
+    the figures that rebuild scenes or re-simulate (:data:`HOOKS`; they compile JAX code); ``drawn``:
+    figures drawn already (:func:`draw_figures`' result), not drawn again. A figure
     with a ``prefetch`` (Fig. 3.6's step responses) computes in a background thread while the
     others are drawn (the default study's results folder on an idle 2-core machine, two runs each,
     alternating: 29.1 and 28.8 s one after the other, 23.8 and 24.0 s so; the same figures and
@@ -1896,8 +1918,10 @@ def make_report(out_dir, *, figures: bool = True, hooks: bool = True) -> Path:
         raise ValueError(f"out_dir: runs.csv in {str(out)!r} has no runs")
     fig_dir = out / "figures"
     specs = FIGURES + HOOKS
-    drawn = {}
+    drawn = dict(drawn or {})
     for spec in specs:
+        if spec.file in drawn:
+            continue
         if not figures:
             drawn[spec.file] = ("missing", "figures disabled", None)
         elif spec in HOOKS and not hooks:
