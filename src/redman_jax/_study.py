@@ -570,10 +570,16 @@ def render_report(out, make=None) -> None:
 
     pins = [] if custom else _worker_cores(2)
     split = len(set(pins)) == 2
-    # each process spawned from the calling thread pinned to a core of its own (see _worker_pool)
+    ctx = mp.get_context("spawn")
+    cores, start = None, None
+    if split:  # each process pinned to a core of its own, as the workers are (see _worker_pool)
+        cores = ctx.SimpleQueue()
+        for c in pins:
+            cores.put(c)
+        start = functools.partial(_worker_start, cores, None, None)
     with (_one_core_while_spawning(pins[0] if split else None),
           _worker_xla_flags(REPORT_XLA_FLAGS, base=_FLAGS_BEFORE_ADOPTION),
-          ProcessPoolExecutor(max_workers=2 if split else 1, mp_context=mp.get_context("spawn")) as pool):
+          ProcessPoolExecutor(max_workers=2 if split else 1, mp_context=ctx, initializer=start) as pool):
         if not split:
             pool.submit(make, out).result()  # re-raises the report's error here
             return
