@@ -1869,15 +1869,20 @@ def _with_data(make, future, d, path):
     return make(d, path, future.result())  # the background computation's error, if any, raises here
 
 
+def _study_with_runs(out: Path) -> StudyData:
+    d = load_study(out)
+    if not d.rows:
+        raise ValueError(f"out_dir: runs.csv in {str(out)!r} has no runs")
+    return d
+
+
 def draw_figures(out_dir, *, only=None, exclude=()) -> dict:
     """Draw the figures of :data:`FIGURES` and :data:`HOOKS` named in ``only`` (default: all) but
     not in ``exclude`` into ``DIR/figures``, one after the other (a ``prefetch`` computes inline);
     returns ``{file: (status, reason, hook result)}``, what :func:`make_report` takes as ``drawn``.
     :func:`redman_jax._study.render_report` draws the figures in two processes this way."""
     out = Path(out_dir)
-    d = load_study(out)
-    if not d.rows:
-        raise ValueError(f"out_dir: runs.csv in {str(out)!r} has no runs")
+    d = _study_with_runs(out)
     drawn = {}
     for spec in FIGURES + HOOKS:
         if (only is not None and spec.file not in only) or spec.file in exclude:
@@ -1913,9 +1918,7 @@ def make_report(out_dir, *, figures: bool = True, hooks: bool = True, drawn: dic
     from ._store import atomic_write_text
 
     out = Path(out_dir)
-    d = load_study(out)
-    if not d.rows:
-        raise ValueError(f"out_dir: runs.csv in {str(out)!r} has no runs")
+    d = _study_with_runs(out)
     fig_dir = out / "figures"
     specs = FIGURES + HOOKS
     drawn = dict(drawn or {})

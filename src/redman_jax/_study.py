@@ -565,30 +565,19 @@ def render_report(out, make=None) -> None:
     if jax.default_backend() != "cpu":
         make(out)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     pins = [] if custom else _worker_cores(2)
-    split = len(set(pins)) == 2
-    ctx = mp.get_context("spawn")
-    cores, start = None, None
-    if split:  # each process pinned to a core of its own, as the workers are (see _worker_pool)
-        cores = ctx.SimpleQueue()
-        for c in pins:
-            cores.put(c)
-        start = functools.partial(_worker_start, cores, None, None)
-    with (_one_core_while_spawning(pins[0] if split else None),
-          _worker_xla_flags(REPORT_XLA_FLAGS, base=_FLAGS_BEFORE_ADOPTION),
-          ProcessPoolExecutor(max_workers=2 if split else 1, mp_context=ctx, initializer=start) as pool):
-        if not split:
+    if len(set(pins)) < 2:  # one process, not pinned (as before the report was split)
+        pins = []
+    flags = _worker_xla_flags(REPORT_XLA_FLAGS, base=_FLAGS_BEFORE_ADOPTION)
+    with _pinned_pool(2 if pins else 1, pins, flags) as (pool, pinned):
+        if not pins:
             pool.submit(make, out).result()  # re-raises the report's error here
             return
         from ._report import HOOKS, draw_figures
 
         apart = tuple(spec.file for spec in HOOKS if spec.prefetch is not None)
-        submit = _PinnedSubmit(pool, pins).submit
-        parts = [submit(functools.partial(draw_figures, out, exclude=apart)),
-                 submit(functools.partial(draw_figures, out, only=apart))]
+        parts = [pinned.submit(functools.partial(draw_figures, out, exclude=apart)),
+                 pinned.submit(functools.partial(draw_figures, out, only=apart))]
         drawn = {}
         for part in parts:
             drawn.update(part.result())
@@ -968,22 +957,33 @@ def _worker_pool(cfg: SweepConfig, init=None):
     are two plain ``SimpleQueue`` objects handed to each worker as it starts (a put is written at
     once)."""
     import multiprocessing as mp
+
+    progress = mp.get_context("spawn").SimpleQueue()
+    with _pinned_pool(cfg.jobs, _worker_cores(cfg.jobs), _worker_xla_flags(), init, progress) as (_, submit):
+        yield submit, progress
+
+
+@contextlib.contextmanager
+def _pinned_pool(workers: int, pins, flags, init=None, progress=None):
+    """A spawning process pool of ``workers`` whose processes each pin themselves to one of
+    ``pins`` (:func:`_worker_start`; ``[]``: no pinning), started with the ``XLA_FLAGS`` the
+    context manager ``flags`` sets; yields ``(pool, submitter)`` (:class:`_PinnedSubmit`). The
+    calling thread is pinned while the pool may spawn, through every submit (see
+    :func:`_one_core_while_spawning`; the submitter moves it to the next core before each), then
+    restored. The sweep's workers (:func:`_worker_pool`) and the report's (:func:`render_report`)."""
+    import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("spawn")
     cores = None
-    pins = _worker_cores(cfg.jobs)
     if pins:
         cores = ctx.SimpleQueue()
         for c in pins:
             cores.put(c)
-    progress = ctx.SimpleQueue()
     start = functools.partial(_worker_start, cores, init, progress)
-    # the calling thread pinned while the pool may spawn, through every submit of every phase (see
-    # _one_core_while_spawning; _PinnedSubmit moves it to the next core before each), then restored
-    with (_one_core_while_spawning(pins[0] if pins else None), _worker_xla_flags(),
-          ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=ctx, initializer=start) as pool):
-        yield _PinnedSubmit(pool, pins), progress
+    with (_one_core_while_spawning(pins[0] if pins else None), flags,
+          ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=start) as pool):
+        yield pool, _PinnedSubmit(pool, pins)
 
 
 class _PinnedSubmit:
