@@ -8,6 +8,7 @@ starting and ending at rest, at a constant orientation with orientation control 
 """
 
 import collections
+import textwrap
 
 import equinox as eqx
 import jax
@@ -396,16 +397,33 @@ def test_importing_redman_jax_starts_no_jax_backend():
     """The IK's default parameters are built at the call, not at import (they were default
     arguments holding arrays): ``import redman_jax`` starts no JAX backend, so that a user can still
     call ``jax.distributed.initialize()``, set XLA options or pin the process after it, as JAX
-    requires before its backend starts."""
+    requires before its backend starts. Nor does it load matplotlib: the figures' functions are
+    imported when first asked for (by attribute, ``from redman_jax import``, or ``dir``)."""
     import os
     import subprocess
     import sys
 
-    script = "import redman_jax\nfrom jax._src import xla_bridge\nprint(xla_bridge.backends_are_initialized())"
+    script = textwrap.dedent("""
+        import sys
+        import redman_jax
+        from jax._src import xla_bridge
+        print(xla_bridge.backends_are_initialized(), "matplotlib" in sys.modules)
+        from redman_jax import plot_field_slice
+        from redman_jax._plots import plot_field_slice as direct, plot_scenario
+        print(plot_field_slice is direct, redman_jax.plot_scenario is plot_scenario,
+              {"plot_scenario", "plot_field_slice"} <= set(dir(redman_jax)), "matplotlib" in sys.modules)
+        try:
+            redman_jax.plot_nothing
+        except AttributeError as e:
+            print(e)
+        """)
     proc = subprocess.run([sys.executable, "-c", script], env=dict(os.environ, JAX_PLATFORMS="cpu"),
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.split() == ["False"]
+    lines = proc.stdout.splitlines()
+    assert lines[0].split() == ["False", "False"]
+    assert lines[1].split() == ["True"] * 4
+    assert lines[2] == "module 'redman_jax' has no attribute 'plot_nothing'"
 
 
 def test_float32_ik_runs_with_default_params_and_tracks_float64():
