@@ -524,6 +524,10 @@ def test_parallel_workers_give_the_serial_table(monkeypatch, tmp_path):
                 for p in affinity.glob("*.txt")]  # per worker, per thread
         pools = [int(p.read_text()) for p in affinity.glob("*.pool")]
         flags = [p.read_text().split() for p in affinity.glob("*.flags")]
+        from redman_jax._study import GC_THRESHOLDS
+
+        gcs = {p.read_text() for p in affinity.glob("*.gc")}  # the workers that ran simulations
+        assert gcs == {" ".join(map(str, GC_THRESHOLDS))}, gcs
         assert len(flags) == len(seen) and os.environ.get("XLA_FLAGS", "") == flags_before
         if _xla_accepts(_with_flags(flags_before, WORKER_XLA_FLAGS)):  # the workers' XLA flags
             want = set(_with_flags(flags_before, WORKER_XLA_FLAGS).split())  # the user's own kept
@@ -872,14 +876,15 @@ def test_the_table_does_not_depend_on_jobs_or_on_a_resume(tmp_path):
 def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
     """``prepare_sweep_process`` (the command line and the sweep scripts call it first): the
     workers' XLA flags, and for ``--jobs 1`` one core, so that the units this process computes
-    round as a worker's; where JAX's backend already runs it changes nothing."""
+    round as a worker's (and the garbage collector's thresholds, :func:`tune_gc`); where JAX's
+    backend already runs it changes neither flags nor cores."""
     from redman_jax._study import _with_flags, _worker_flags, _xla_accepts, prepare_sweep_process
 
     WORKER_XLA_FLAGS = _worker_flags()
 
     code = ("import os, sys; from redman_jax import _study; from redman_jax._study import prepare_sweep_process; "
             "prepare_sweep_process(sys.argv[1]); import jax.numpy as j; j.zeros(1).block_until_ready(); "
-            "print(repr(_study._FLAGS_BEFORE_ADOPTION)); "
+            "print(repr(_study._FLAGS_BEFORE_ADOPTION)); import gc; print(gc.get_threshold() == _study.GC_THRESHOLDS); "
             "print(len(os.sched_getaffinity(0))); print(os.environ.get('XLA_FLAGS', ''))")
     env = dict(os.environ)
     cores = len(os.sched_getaffinity(0))
@@ -887,8 +892,8 @@ def test_a_sweep_process_is_prepared_as_a_worker_before_jax_starts():
         done = subprocess.run([sys.executable, "-c", code, jobs], capture_output=True, text=True, env=env,
                               timeout=300)
         assert done.returncode == 0, done.stderr[-2000:]
-        kept, n, flags = done.stdout.splitlines()[-3:]
-        assert int(n) == want
+        kept, gc_tuned, n, flags = done.stdout.splitlines()[-4:]
+        assert int(n) == want and gc_tuned == "True"
         if _xla_accepts(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS)):
             assert set(_with_flags(env.get("XLA_FLAGS", ""), WORKER_XLA_FLAGS).split()) <= set(flags.split())
         # the flags before, from which the report's process starts (render_report)

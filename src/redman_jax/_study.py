@@ -658,6 +658,7 @@ def _worker_start(cores, init, progress) -> None:
     _PROGRESS = progress
     if init is not None:
         init()
+    tune_gc()
 
 
 def _exit_with_parent() -> None:
@@ -893,6 +894,27 @@ def compute_here_as_a_worker() -> bool:
     return True
 
 
+# Python's cyclic garbage collector in a process that traces JAX programs (a sweep's workers and a
+# --jobs 1 sweep's process): a young-generation collection every 100,000 net allocations instead of
+# 700. Tracing builds millions of short-lived objects, and with the default thresholds the collector
+# took about 7.5 % of a compile-bound test (a perf profile). Measured (the 9-DOF warehouse build,
+# velocity OSC and gradient-guided units, --jobs 1, the two settings side by side on one core each,
+# then on swapped cores): tracing and lowering 13.4 / 11.8 s with the default thresholds, 10.3 /
+# 9.7 s with these; backend compiling and running unchanged (within the pairs' noise, +-5 s of
+# 160-172 s). Cycles are still collected, later; the computations are unchanged.
+GC_THRESHOLDS = (100_000, 50, 100)
+
+
+def tune_gc() -> None:
+    """Collect once, move what is alive (the imported modules) out of the collector's reach
+    (``gc.freeze``) and set :data:`GC_THRESHOLDS`."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*GC_THRESHOLDS)
+
+
 def _backend_started() -> bool:
     """Whether this process's JAX backend has started (its XLA flags and CPU pool are fixed then);
     True where this jax cannot tell, so that nothing is changed under a running backend."""
@@ -908,8 +930,10 @@ def prepare_sweep_process(jobs, distributed: bool = False) -> None:
     """Call first in a process that will run a sweep (the command line and the scripts under
     ``sweeps/`` do), before any JAX work: the workers' XLA flags, and for ``jobs`` 1 (units
     computed in this process) a worker's one core, so that the table is the same for any
-    ``--jobs`` (:func:`adopt_worker_xla_flags`, :func:`compute_here_as_a_worker`)."""
+    ``--jobs`` (:func:`adopt_worker_xla_flags`, :func:`compute_here_as_a_worker`); and Python's
+    garbage collector set for tracing (:func:`tune_gc`)."""
     adopt_worker_xla_flags()
+    tune_gc()
     if str(jobs).strip() == "1" and not distributed:
         compute_here_as_a_worker()
 
