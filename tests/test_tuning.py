@@ -392,8 +392,9 @@ def test_ik_joint_target_must_reach_well_inside_the_band(monkeypatch):
 
 def test_tune_cli_says_which_controllers_did_not_settle(monkeypatch, tmp_path, capsys):
     """``redman-jax tune`` marks each controller settled or not and warns on stderr where the gains
-    it writes are only the last iterate (PID without gravity compensation never settles). The
-    simulations are replaced by fakes: this checks the command's reporting."""
+    it writes are only the last iterate (PID without gravity compensation never settles), and sets
+    the garbage collector for tracing. The simulations are replaced by fakes: this checks the
+    command's reporting."""
     import argparse
     import types
 
@@ -414,7 +415,17 @@ def test_tune_cli_says_which_controllers_did_not_settle(monkeypatch, tmp_path, c
                         lambda arm, png, gains, ctrls, title=None: {c: (None, None, 0.5) for c in ctrls})
     monkeypatch.setattr(tuning, "tune_gains", fake_tune)
     args = argparse.Namespace(arm="7", controllers="velocity,pid", steps=3, out=str(tmp_path))
-    tuned = tuning.tune_cli(args)
+    import gc
+
+    from redman_jax._study import GC_THRESHOLDS
+
+    before = gc.get_threshold()
+    gc.set_threshold(700, 10, 10)  # Python's defaults: the command sets its own
+    try:
+        tuned = tuning.tune_cli(args)
+        assert gc.get_threshold() == GC_THRESHOLDS
+    finally:
+        gc.set_threshold(*before)
     out, err = capsys.readouterr()
     lines = {ln.split()[0]: ln for ln in out.splitlines() if ln.split() and ln.split()[0] in ("velocity", "pid")}
     assert lines["velocity"].split()[6] == "yes" and lines["pid"].split()[6] == "NO"
