@@ -4,7 +4,6 @@ Each test module uses its own small problem sizes; heavy runs live in benchmarks
 """
 
 import contextlib
-import gc
 import os
 
 os.environ.setdefault("REDMAN_JAX_X64", "1")
@@ -181,7 +180,8 @@ def pytest_collection_finish(session):
     the collector (``gc_collect_main``, ``visit_decref``, ``visit_reachable``). Measured (2026-12-07,
     test_controllers.py and test_tuning.py without the slow tests, one core each, the two settings
     side by side and then on swapped cores): 185.8 / 196.0 s with the default thresholds, 171.0 /
-    179.7 s with these. Cycles are still collected, later; the computations are unchanged."""
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(100_000, 50, 100)
+    179.7 s with these. Cycles are still collected, later; the computations are unchanged. The
+    sweep's workers do the same (:func:`redman_jax._study.tune_gc`)."""
+    from redman_jax._study import tune_gc
+
+    tune_gc()

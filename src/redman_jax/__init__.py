@@ -216,8 +216,8 @@ from ._tuning import (
 __version__ = "0.1.0"
 
 # The figures' functions load matplotlib (and select its Agg backend) when first asked for, not at
-# ``import redman_jax``: the import took 2.28 s with them, 1.9 s without (``python -X importtime``,
-# matplotlib.pyplot 0.36 s), in every process that never plots (the sweep's workers, scripts' --help).
+# ``import redman_jax``: 1.95-2.10 s with them, 1.57-1.64 s without (``python -X importtime``, the two
+# alternating, three times each), in every process that never plots (the sweep's workers, --help).
 _LAZY = {"plot_scenario": "._plots", "plot_field_slice": "._plots"}
 
 
