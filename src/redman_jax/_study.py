@@ -894,10 +894,12 @@ def compute_here_as_a_worker() -> bool:
     return True
 
 
-# Python's cyclic garbage collector in a process that traces JAX programs (a sweep's workers and a
-# --jobs 1 sweep's process): a young-generation collection every 100,000 net allocations instead of
-# 700. Tracing builds millions of short-lived objects, and with the default thresholds the collector
-# took about 7.5 % of a compile-bound test (a perf profile). Measured (the 9-DOF warehouse build,
+# Python's cyclic garbage collector in a process that traces JAX programs: a young-generation
+# collection every 100,000 net allocations instead of 700. Set by :func:`prepare_sweep_process` (the
+# sweep command's and scripts' own process, any --jobs), :func:`_worker_start` (the sweep's workers
+# and the report's processes), ``redman-jax tune`` (``_tuning.tune_cli``) and the test suite.
+# Tracing builds millions of short-lived objects, and with the default thresholds the collector took
+# about 7.5 % of a compile-bound test (a perf profile). Measured (the 9-DOF warehouse build,
 # velocity OSC and gradient-guided units, --jobs 1, the two settings side by side on one core each,
 # then on swapped cores): tracing and lowering 13.4 / 11.8 s with the default thresholds, 10.3 /
 # 9.7 s with these; backend compiling and running unchanged (within the pairs' noise, +-5 s of
