@@ -1805,7 +1805,8 @@ _METHOD = f"""## Method
   workers while other work runs beside them. On a shared machine a cell's time moves between
   runs of the same code (two fresh runs of the default study on 2 cores: controllers up to 1.6x,
   IK and planning up to 2.0x and 2.7x, the medians within 8 %), so a timing verdict whose number
-  lies that close to its threshold can change from run to run (there: R1.b, R4.a).
+  lies that close to its threshold can change from run to run (there: R1.b, R4.a; in three fresh
+  runs of one day: R1.b, R5.d).
 * Verdict thresholds: "most" > {MOST:.0%}; "almost all" >= {ALMOST_ALL:.0%}; "models do not differ"
   max/min over arms <= {MODEL_SPREAD}; "roughly constant" <= {ROUGHLY_CONSTANT}; "a ~ b" within
   {SIMILAR}x; "about k times" within a factor {APPROX_FACTOR:.0f}; success rates agree when the thesis's
