@@ -188,6 +188,22 @@ def test_hooks_and_figures_can_be_disabled(tmp_path):
         assert f"({spec.file}): not generated (figures disabled)" in text
 
 
+def test_the_report_names_the_cpu_its_timings_ran_on(tmp_path, monkeypatch):
+    """The machine row carries the CPU model (the report compares timings) and the usable cores."""
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: Test CPU 9000 @ 3.1GHz\n"
+                    "processor\t: 1\nmodel name\t: Test CPU 9000 @ 3.1GHz\n")
+    assert report_mod._cpu_model(str(info)) == "Test CPU 9000 @ 3.1GHz"
+    info.write_text("processor\t: 0\nmodel name\t:\n")  # no name: platform's word, or unknown
+    assert report_mod._cpu_model(str(info)) == (report_mod.platform.processor() or "CPU model unknown")
+    assert report_mod._cpu_model(str(tmp_path / "absent")) == (report_mod.platform.processor() or "CPU model unknown")
+    monkeypatch.setattr(report_mod, "_cpu_model", lambda: "Test CPU 9000")
+    synthetic_study(tmp_path / "study")
+    text = make_report(tmp_path / "study", figures=False).read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| machine |"))
+    assert "Test CPU 9000" in row and re.search(r"\d+ of \d+ cores usable", row), row
+
+
 def test_verdicts_follow_the_data(tmp_path):
     synthetic_study(tmp_path)
     c = _claims(tmp_path)

@@ -1729,6 +1729,33 @@ def _render(spec: FigureSpec, d: StudyData, fig_dir: Path) -> tuple[str, str, ob
 # report
 
 
+def _cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
+    """The CPU's model name (Linux: the first ``model name`` of ``cpuinfo``; elsewhere
+    ``platform.processor()``), or ``"CPU model unknown"``: the report's timings depend on it."""
+    try:
+        with open(cpuinfo, encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, sep, value = line.partition(":")
+                if sep and key.strip() == "model name" and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or "CPU model unknown"
+
+
+def _machine() -> str:
+    """The report's machine row: platform, architecture, CPU model and the cores this process
+    may run on (of the machine's)."""
+    import os
+
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count()
+    return (f"{platform.platform()}, {platform.machine()}, {_cpu_model()}, "
+            f"{usable} of {os.cpu_count()} cores usable")
+
+
 def _versions() -> str:
     import importlib.metadata as md
 
@@ -1784,7 +1811,7 @@ def _header(d: StudyData) -> list[str]:
         lines.append(f"| gradient-guided cases | {', '.join(cfg['gradient_cases'])} |")
     if cfg.get("gains"):
         lines.append(f"| gain overrides | `{json.dumps(cfg['gains'])}` |")
-    lines += [f"| versions | {_versions()} |", f"| machine | {platform.platform()}, {platform.machine()} |", ""]
+    lines += [f"| versions | {_versions()} |", f"| machine | {_machine()} |", ""]
     return lines
 
 
