@@ -1744,16 +1744,11 @@ def _cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
 
 
 def _machine() -> str:
-    """The report's machine row: platform, architecture, CPU model and the cores this process
-    may run on (of the machine's)."""
+    """The report's machine row: platform, architecture, CPU model and the machine's logical CPUs
+    (not this process's: :func:`redman_jax._study.render_report` pins the report to one core)."""
     import os
 
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        usable = os.cpu_count()
-    return (f"{platform.platform()}, {platform.machine()}, {_cpu_model()}, "
-            f"{usable} of {os.cpu_count()} cores usable")
+    return f"{platform.platform()}, {platform.machine()}, {_cpu_model()}, {os.cpu_count()} logical CPUs"
 
 
 def _versions() -> str:
