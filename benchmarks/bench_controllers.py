@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 
 import jax
@@ -37,6 +36,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 import redman_jax as rj
 from redman_jax._control_types import ControlState, RefSample, make_environment
 from redman_jax._controllers import CONTROLLERS
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._nullspace import obstacle_gradients
 
 THESIS_MS = {"acceleration": 2.6, "velocity": 2.2, "joint_space": 1.7, "gradient": 2.3}
@@ -118,7 +118,7 @@ def main():
         else:
             start_with_xla_flags(extra, "--study-flags")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
-          f"x64 {jax.config.jax_enable_x64}, {platform.processor() or platform.machine()}, "
+          f"x64 {jax.config.jax_enable_x64}, {_cpu_model()}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     devices = jax.devices()
     mesh = Mesh(np.array(devices), ("batch",))

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import redman_jax  # noqa: F401  (float64)
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._dynamics import (
     _forward_dynamics_lapack,
     _mass_matrix_com,
@@ -183,7 +184,7 @@ def main():
     print(f"python {platform.python_version()}, jax {jax.__version__}, jaxlib {jax.lib.__version__ if hasattr(jax.lib, '__version__') else ''}"
           f", numpy {np.__version__}, pinocchio {pin.__version__ if pin else 'absent (given: ' + args.pin_us + ' us)'}")
     print(f"device {jax.devices()[0]} ({jax.devices()[0].device_kind}), {os.cpu_count()} CPUs visible, "
-          f"{platform.processor() or platform.machine()}, x64={jax.config.jax_enable_x64}")
+          f"{_cpu_model()}, x64={jax.config.jax_enable_x64}")
     print("times per state [us]; ours = jit(vmap(f)) with the arm as an argument; pin = per call from Python,")
     print("looped over 500 states, timed right before ours; median and min of repeats (min resists load)\n")
 

@@ -17,7 +17,6 @@ seeds and trajectories.
 """
 
 import argparse
-import platform
 import time
 
 import jax
@@ -27,6 +26,7 @@ import numpy as np
 import redman_jax
 from redman_jax._cases import make_scenarios
 from redman_jax._ik import IKParams, ik_trajectory, validated_scenarios
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._kinematics import jacobian
 from redman_jax._nullspace import damped_pinv
 from redman_jax._scenario import CASES
@@ -49,7 +49,7 @@ def main():
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--rounds", action="store_true", help="time the validation's retry rounds, screened or not")
     args = ap.parse_args()
-    print(f"jax {jax.__version__}, {jax.devices()[0]}, {platform.processor() or platform.machine()}, "
+    print(f"jax {jax.__version__}, {jax.devices()[0]}, {_cpu_model()}, "
           f"x64={jax.config.jax_enable_x64}")
     arm = redman_jax.thesis_arm(args.dof)
     seeds = list(range(1, args.seeds + 1))

@@ -17,7 +17,6 @@ the host is split into ``--devices`` XLA devices, ``--xla_force_host_platform_de
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 
 import numpy as np
@@ -45,10 +44,11 @@ def main():
 
     import redman_jax._pipeline as pipe
     import redman_jax._sim as sim
+    from redman_jax._report import _cpu_model
     from redman_jax._robot import thesis_arm
 
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, {len(jax.devices())} devices, "
-          f"{platform.processor() or platform.machine()}")
+          f"{_cpu_model()}")
     arm = thesis_arm(args.dof)
     seeds = list(range(1, args.seeds + 1))
     t0 = time.perf_counter()

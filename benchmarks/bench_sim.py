@@ -77,6 +77,7 @@ from scipy.integrate import solve_ivp
 import redman_jax  # noqa: F401  (float64)
 from redman_jax._control_types import AbstractController
 from redman_jax._controllers import CONTROLLERS
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._robot import thesis_arm
 from redman_jax._scenario import CASES
 from redman_jax._sim import SimParams, joint_reference, simulate, simulate_batch, tolerances
@@ -760,7 +761,7 @@ def main(argv=None):
     params = SimParams()
     # None (the default) means by the states' precision: float64's unless x64 is off
     rtol, atol = (float(v) for v in tolerances(params, jnp.result_type(float)))
-    print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
+    print(f"machine: {platform.platform()}, {_cpu_model()}, "
           f"{os.cpu_count()} cpus (shared); python {platform.python_version()}")
     print(f"load average at start (1, 5, 15 min): {os.getloadavg()}")
     print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r} (--xla-flags {args.xla_flags})")
