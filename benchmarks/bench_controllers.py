@@ -36,8 +36,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 import redman_jax as rj
 from redman_jax._control_types import ControlState, RefSample, make_environment
 from redman_jax._controllers import CONTROLLERS
-from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._nullspace import obstacle_gradients
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 
 THESIS_MS = {"acceleration": 2.6, "velocity": 2.2, "joint_space": 1.7, "gradient": 2.3}
 LOOP_STATES = 1024  # states of the "loop" row, at least

@@ -33,7 +33,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import redman_jax  # noqa: F401  (float64)
-from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._dynamics import (
     _forward_dynamics_lapack,
     _mass_matrix_com,
@@ -45,6 +44,7 @@ from redman_jax._dynamics import (
     mass_matrix_lagrange,
 )
 from redman_jax._kinematics import forward_kinematics, jacobian, kinematics
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._robot import thesis_arm
 from redman_jax._urdf import example_robot_data_file, from_urdf, to_urdf
 

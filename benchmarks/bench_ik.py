@@ -26,9 +26,9 @@ import numpy as np
 import redman_jax
 from redman_jax._cases import make_scenarios
 from redman_jax._ik import IKParams, ik_trajectory, validated_scenarios
-from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._kinematics import jacobian
 from redman_jax._nullspace import damped_pinv
+from redman_jax._report import _cpu_model  # the CPU's model name, as the study report's machine row gives it
 from redman_jax._scenario import CASES
 
 
