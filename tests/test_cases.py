@@ -22,7 +22,9 @@ from redman_jax._cases import (
     WarehouseParams,
     _arm_info,
     _draw,
+    _draw_fourth_sphere,
     _GENERATORS,
+    _Reject,
     _q0_geometry,
     host_distances,
     make_scenario,
@@ -331,6 +333,57 @@ def test_simple_rules_many_seeds(dof):
         np.testing.assert_allclose(a, np.array([g[0], g[1], 0]) / math.hypot(g[0], g[1]), atol=1e-12)
         assert _start_ok(sc, info)
         assert host_distances(sc.spheres, [], [], g[None]).min() >= PRM.goal_clearance
+
+
+def _fourth_sphere_one_at_a_time(rng, P, tries, x0, g, b1, b2, tri):
+    """The simple case's fourth sphere as the generator first drew it: one candidate at a time."""
+    rs = P.sphere_radius
+    for _ in range(tries):
+        f = rng.uniform(*P.fourth_fraction)
+        off = rng.uniform(*P.fourth_offset)
+        beta = rng.uniform(0, 2 * math.pi)
+        c4 = x0 + f * (g - x0) + off * (math.cos(beta) * b1 + math.sin(beta) * b2)
+        if min(np.linalg.norm(c4 - x0), np.linalg.norm(c4 - g)) - rs < P.fourth_min_distance:
+            continue
+        if min(np.linalg.norm(c4 - c) for c in tri) - 2 * rs < P.fourth_gap:
+            continue
+        return c4
+    return None
+
+
+@pytest.mark.parametrize("margin", [None, 10.0])
+def test_fourth_sphere_equals_drawing_one_at_a_time(monkeypatch, margin):
+    """The vectorised draw of the simple case's fourth sphere accepts the same candidate, to the bit,
+    and leaves the generator where the one-at-a-time loop does; also when no candidate passes (few
+    tries), and with every candidate decided by the scalar rule (a screening margin of 10 m)."""
+    import redman_jax._cases as cases
+
+    if margin is not None:
+        monkeypatch.setattr(cases, "_SCREEN_MARGIN", margin)
+    P = PRM.simple
+    setup = np.random.default_rng(7)
+    outcomes = collections.Counter()
+    for trial in range(300):
+        x0 = setup.uniform(-0.3, 0.3, 3) + np.array([0.0, 0.0, 0.8])
+        g = x0 + setup.uniform(0.6, 1.2) * cases._unit(setup.normal(size=3))
+        b1, b2 = cases._perp_basis(g - x0)
+        roll = setup.uniform(0, 2 * math.pi)
+        m = 0.5 * (x0 + g)
+        tri = [m + P.circumradius * (math.cos(roll + 2 * math.pi * k / 3) * b1
+                                     + math.sin(roll + 2 * math.pi * k / 3) * b2) for k in range(3)]
+        tries = int(setup.choice([1, 5, 200]))
+        a, b = np.random.default_rng(trial), np.random.default_rng(trial)
+        want = _fourth_sphere_one_at_a_time(a, P, tries, x0, g, b1, b2, tri)
+        if want is None:
+            with pytest.raises(_Reject, match="simple_fourth"):
+                _draw_fourth_sphere(b, P, tries, x0, g, b1, b2, tri)
+        else:
+            got = _draw_fourth_sphere(b, P, tries, x0, g, b1, b2, tri)
+            assert got.tobytes() == want.tobytes()
+        assert a.bit_generator.state == b.bit_generator.state
+        assert a.random() == b.random()
+        outcomes["rejected" if want is None else "accepted"] += 1
+    assert outcomes["accepted"] > 50 and outcomes["rejected"] > 50, outcomes
 
 
 def test_host_distances_match_jax_sdf():
