@@ -783,8 +783,8 @@ def _fourth_sphere_ok(c4, P: SimpleParams, x0, g, tri) -> bool:
 
 
 # Margin [m] within which the vectorised screen of _draw_fourth_sphere defers to the scalar rule: its
-# distances may round differently from the scalar ones (np.cos against math.cos, summation order of
-# the norms) by about 1e-16 m, so a candidate it finds farther than this from a threshold is decided.
+# distances may round differently from the scalar ones (np.cos against math.cos, the norms over an
+# axis) by about 1e-16 m, so a candidate it finds farther than this from a threshold is decided.
 _SCREEN_MARGIN = 1e-9
 
 
@@ -811,7 +811,7 @@ def _draw_fourth_sphere(rng, P: SimpleParams, tries: int, x0, g, b1, b2, tri) ->
     f, off, beta = fob[:, 0], fob[:, 1], fob[:, 2]
     c4 = x0 + f[:, None] * (g - x0) + off[:, None] * (np.cos(beta)[:, None] * b1 + np.sin(beta)[:, None] * b2)
     rs = P.sphere_radius
-    dist = lambda c: np.sqrt(np.einsum("ij,ij->i", c4 - c, c4 - c))
+    dist = lambda c: np.linalg.norm(c4 - c, axis=1)
     m1 = np.minimum(dist(x0), dist(g)) - rs - P.fourth_min_distance
     m2 = np.min([dist(c) for c in tri], axis=0) - 2 * rs - P.fourth_gap
     clear_reject = (m1 < -_SCREEN_MARGIN) | (m2 < -_SCREEN_MARGIN)
