@@ -15,7 +15,8 @@ each device runs the loop over its shard of the states. A deliberately naive lay
 reference per-point vmap of ``_fields.obstacle_field_gradient``, ``M`` and ``c + g`` formed
 explicitly, ``J_dot q_dot`` by a jvp) is timed in the same run as "before".
 
-Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9] [--devices N] [--study-flags]``
+Run: ``python benchmarks/bench_controllers.py [--batches 1,20,1024] [--dof 9] [--devices N] [--study-flags]
+[--scene mixed|spheres|boxes|cylinders]``
 (``JAX_PLATFORMS=cpu taskset -c 0,1`` for the 2-core CPU figure). ``--devices 2`` splits the CPU
 into two XLA devices and runs every batch they divide (20, 1024) as one shard per device
 (``shard_map``), as a user would spread a batch over the cores; the naive layout stays on one
@@ -43,8 +44,14 @@ THESIS_MS = {"acceleration": 2.6, "velocity": 2.2, "joint_space": 1.7, "gradient
 LOOP_STATES = 1024  # states of the "loop" row, at least
 
 
-def scene(rng):
-    """40 obstacles: 12 spheres, 16 boxes, 12 cylinders, random poses around the arm."""
+SCENES = {"mixed": (12, 16, 12), "spheres": (40, 0, 0), "boxes": (0, 40, 0), "cylinders": (0, 0, 40)}
+
+
+def scene(rng, kind: str = "mixed"):
+    """40 obstacles, random poses around the arm: ``mixed`` 12 spheres, 16 boxes, 12 cylinders
+    (the issue's scene); ``spheres``, ``boxes`` or ``cylinders`` 40 of one shape (what each shape
+    costs)."""
+    n_sph, n_box, n_cyl = SCENES[kind]
 
     def rot():
         Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
@@ -56,9 +63,9 @@ def scene(rng):
             if np.hypot(p[0], p[1]) > 0.45:
                 return p
 
-    sph = [(rot(), pos(), [rng.uniform(0.05, 0.1)]) for _ in range(12)]
-    box = [(rot(), pos(), rng.uniform(0.05, 0.15, 3)) for _ in range(16)]
-    cyl = [(rot(), pos(), [rng.uniform(0.03, 0.08), rng.uniform(0.1, 0.3)]) for _ in range(12)]
+    sph = [(rot(), pos(), [rng.uniform(0.05, 0.1)]) for _ in range(n_sph)]
+    box = [(rot(), pos(), rng.uniform(0.05, 0.15, 3)) for _ in range(n_box)]
+    cyl = [(rot(), pos(), [rng.uniform(0.03, 0.08), rng.uniform(0.1, 0.3)]) for _ in range(n_cyl)]
     return rj.make_obstacles(sph, box, cyl)
 
 
@@ -106,6 +113,9 @@ def main():
     ap.add_argument("--study-flags", action="store_true",
                     help="start XLA with the study workers' flags (redman_jax._study.WORKER_XLA_FLAGS: the older "
                          "loop emitters, every while loop compiled as one function, LLVM level 1)")
+    ap.add_argument("--scene", choices=sorted(SCENES), default="mixed",
+                    help="the 40 obstacles: mixed (12 spheres, 16 boxes, 12 cylinders; default, the issue's "
+                         "scene) or 40 of one shape")
     args = ap.parse_args()
     if args.devices is not None or args.study_flags:
         from _xla_start import start_with_host_devices, start_with_xla_flags
@@ -118,7 +128,7 @@ def main():
         else:
             start_with_xla_flags(extra, "--study-flags")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
-          f"x64 {jax.config.jax_enable_x64}, {_cpu_model()}, "
+          f"x64 {jax.config.jax_enable_x64}, {_cpu_model()}, scene {args.scene}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     devices = jax.devices()
     mesh = Mesh(np.array(devices), ("batch",))
@@ -141,7 +151,7 @@ def main():
     rng = np.random.default_rng(0)
     arm = rj.thesis_arm(args.dof)
     n = arm.n_dof
-    obs = scene(rng)
+    obs = scene(rng, args.scene)
     bmax = max(max(int(b) for b in args.batches.split(",")), LOOP_STATES)  # the batches take the first B
     qs = jnp.asarray(np.asarray(arm.q0) + rng.uniform(-0.3, 0.3, (bmax, n)))
     qds = jnp.asarray(rng.normal(size=(bmax, n)) * 0.1)

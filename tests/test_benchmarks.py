@@ -28,7 +28,7 @@ PY = str(VENV_PY) if VENV_PY.exists() else sys.executable
 SMALL_RUNS = {
     "bench_cases.py": (["--dof", "7", "--seeds", "1"], "all five"),
     "bench_controllers.py": (["--dof", "7", "--batches", "1", "--controllers", "joint_space", "--calls", "1",
-                              "--devices", "2", "--study-flags"],
+                              "--devices", "2", "--study-flags", "--scene", "boxes"],
                              "acceleration_naive   batch     1:"),
     "bench_dynamics.py": (["--quick"], "paired rounds at batch 1024"),
     "bench_guided.py": (["--dof", "7", "--seeds", "1", "--reps", "2"], "simple: stepper / per-sample, warm speed-up"),
@@ -95,6 +95,25 @@ def test_obs_d_sets_the_obstacle_policys_range_only(monkeypatch):
         diff = [not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(h))]
         assert sum(diff) == 1, name
         assert with_policy_range(g, None) is g
+
+
+def test_controller_benchmark_scenes(monkeypatch):
+    """``bench_controllers.scene``: 40 obstacles, the issue's mix (12 spheres, 16 boxes, 12
+    cylinders) or 40 of one shape, every slot active, each shape's sizes in its own range."""
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from bench_controllers import SCENES, scene
+
+    for kind, counts in SCENES.items():
+        obs = scene(np.random.default_rng(0), kind)
+        fams = (obs.spheres, obs.boxes, obs.cylinders)
+        assert tuple(int(np.sum(f.mask)) for f in fams) == counts and sum(counts) == 40, kind
+        for f, (lo, hi), k in zip(fams, ((0.05, 0.1), (0.05, 0.15), (0.03, 0.3)), (1, 3, 2)):
+            dims = np.asarray(f.dims)[np.asarray(f.mask)][:, :k]  # (r,), (bx, by, bz), (r, h)
+            assert dims.size == 0 or (dims.min() >= lo and dims.max() <= hi), kind
+            p = np.asarray(f.p)[np.asarray(f.mask)]
+            assert p.size == 0 or np.hypot(p[:, 0], p[:, 1]).min() > 0.45, kind
 
 
 def test_tolerance_table_metrics_are_the_headline_tables(monkeypatch):
