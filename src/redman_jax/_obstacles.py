@@ -232,7 +232,13 @@ def with_used(obs: ObstacleSet, used) -> ObstacleSet:
 def fold_slots(obs: ObstacleSet, family: int, init, step):
     """``acc = step(acc, slots, c)`` over the slot groups of family ``family`` (0 spheres,
     1 boxes, 2 cylinders; :func:`slot_steps`), one ``lax.scan`` per segment; with ``obs.used``
-    set, the groups that start at or past it are skipped by a ``lax.cond`` (differentiable)."""
+    set, the groups that start at or past it are skipped by a ``lax.cond`` (differentiable).
+
+    The scans are not unrolled: ``unroll=2`` or ``4`` compiled longer and ran no faster (original
+    velocity OSC, 40 obstacles, the study's flags, 2 devices, us per state at 1024 states,
+    alternating; loop layout: unroll 1: 17.02 / 14.96 / 15.47 / 15.15, 2: 13.84 / 16.55 / 16.88,
+    4: 15.21 / 15.82; vmap at batch 1024: 1: 16.99 / 16.42 / 20.02 / 18.51, 2: 18.47 / 17.96 /
+    19.54, 4: 19.96 / 19.10)."""
     fam = (obs.spheres, obs.boxes, obs.cylinders)[family]
     acc = init
     for start, slots, c in slot_steps(fam, obs.slots_per_step):
