@@ -647,16 +647,18 @@ def _fold_families(obs, init, slot_fn, n_linear: int = 0):
     primal outputs free of the tangents) gave the same values to the bit and no gain: original
     velocity OSC, 40 obstacles, loop layout at 1024 states, the study's flags, 2 devices, four
     planes / three alternating, 14.72 / 14.15 against 14.70 / 14.73 us per state (vmap at batch
-    1024: 17.95 / 16.78 against 17.43 / 17.35). Nor did the slot frames ``R^T (x - p)`` and
-    ``R^T v`` computed apart from the output loops, which read them. Alone, the pass over 40 boxes
-    and 36 points (1,024 states in a ``lax.map``, one core) took 23.1 / 22.9 -> 18.4 / 18.0 us per
-    state (jvp) and 10.4 -> 8.6 (primal), bit for bit the same values; in the controllers, with
-    the frames of all slots before the scan (not examined further; likely that pass, outside the
-    loop, takes in the producers of the points, recomputed per slot, and under ``vmap`` its
-    ``(slots, batch, points)`` planes leave the cache): original velocity OSC 14.97 / 14.69 -> 21.65 / 17.98 us per state (loop),
-    18.27 / 17.44 -> 40.21 / 40.02 (vmap at 1,024), acceleration OSC 6.98 / 6.63 -> 8.16 / 7.83;
-    with each slot's frames computed one step ahead in the scan's carry (values equal to rounding):
-    15.51 / 14.73 -> 15.04 / 15.68 (loop), 17.94 / 17.19 -> 21.50 / 24.07 (vmap).
+    1024: 17.95 / 16.78 against 17.43 / 17.35).
+
+    Nor did the slot frames ``R^T (x - p)`` and ``R^T v`` computed apart from the output loops,
+    which read them. Alone, the pass over 40 boxes and 36 points (1,024 states in a ``lax.map``,
+    one core) took 23.1 / 22.9 -> 18.4 / 18.0 us per state (jvp) and 10.4 -> 8.6 (primal), bit for
+    bit the same values. In the controllers, with the frames of all slots before the scan (not
+    examined further; likely that pass, outside the loop, takes in the producers of the points,
+    recomputed per slot, and under ``vmap`` its ``(slots, batch, points)`` planes leave the
+    cache): original velocity OSC 14.97 / 14.69 -> 21.65 / 17.98 us per state (loop), 18.27 /
+    17.44 -> 40.21 / 40.02 (vmap at 1,024), acceleration OSC 6.98 / 6.63 -> 8.16 / 7.83; with each
+    slot's frames computed one step ahead in the scan's carry (values equal to rounding): 15.51 /
+    14.73 -> 15.04 / 15.68 (loop), 17.94 / 17.19 -> 21.50 / 24.07 (vmap).
     """
     from ._obstacles import fold_slots
 
