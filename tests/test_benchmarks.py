@@ -99,19 +99,22 @@ def test_obs_d_sets_the_obstacle_policys_range_only(monkeypatch):
 
 def test_controller_benchmark_scenes(monkeypatch):
     """``bench_controllers.scene``: 40 obstacles, the issue's mix (12 spheres, 16 boxes, 12
-    cylinders) or 40 of one shape, every slot active, each shape's sizes in its own range."""
+    cylinders) or 40 of one shape, every slot active, each size in its own range."""
     import numpy as np
 
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     from bench_controllers import SCENES, scene
 
+    # per family, each size's range: sphere (r,), box (bx, by, bz), cylinder (r, h)
+    ranges = ([(0.05, 0.1)], [(0.05, 0.15)] * 3, [(0.03, 0.08), (0.1, 0.3)])
     for kind, counts in SCENES.items():
         obs = scene(np.random.default_rng(0), kind)
         fams = (obs.spheres, obs.boxes, obs.cylinders)
         assert tuple(int(np.sum(f.mask)) for f in fams) == counts and sum(counts) == 40, kind
-        for f, (lo, hi), k in zip(fams, ((0.05, 0.1), (0.05, 0.15), (0.03, 0.3)), (1, 3, 2)):
-            dims = np.asarray(f.dims)[np.asarray(f.mask)][:, :k]  # (r,), (bx, by, bz), (r, h)
-            assert dims.size == 0 or (dims.min() >= lo and dims.max() <= hi), kind
+        for f, rng_ in zip(fams, ranges):
+            dims = np.asarray(f.dims)[np.asarray(f.mask)]
+            for j, (lo, hi) in enumerate(rng_):
+                assert dims.size == 0 or (dims[:, j].min() >= lo and dims[:, j].max() <= hi), (kind, j)
             p = np.asarray(f.p)[np.asarray(f.mask)]
             assert p.size == 0 or np.hypot(p[:, 0], p[:, 1]).min() > 0.45, kind
 
